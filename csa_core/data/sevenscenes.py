@@ -1,0 +1,83 @@
+"""Importer for the Microsoft 7-Scenes layout into a scene folder.
+
+7-Scenes: ``frame-XXXXXX.color.(jpg|png)``, ``frame-XXXXXX.depth.png`` (uint16 mm,
+65535 = invalid), ``frame-XXXXXX.pose.txt`` (4x4 camera-to-world) and, where present,
+``camera-intrinsics.txt`` (3x3). Without that file the data set's published intrinsics
+(fx = fy = 585, principal point at the image centre) are used.
+"""
+
+from __future__ import annotations
+
+import re
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from csa_core.data import image_files as imf
+from csa_core.data.camera import Intrinsics
+from csa_core.data.resample import resample_nearest, resize_color
+from csa_core.data.scene import Frame, Scene, SkippedFrame
+from csa_core.data.scene_io import write_scene
+from csa_core.errors import CSAInputError
+
+FRAME_RE = re.compile(r"^frame-(\d+)\.color\.(jpg|jpeg|png)$", re.IGNORECASE)
+KINECT_INVALID_MM = 65535
+DEFAULT_FOCAL = 585.0  # 7-Scenes documentation: Kinect v1 colour and depth focal length
+
+
+def load_7scenes(src: str | Path, every: int = 1, size: tuple[int, int] | None = None) -> Scene:
+    """Read a 7-Scenes sequence folder into a :class:`Scene` at working size ``size`` (W, H)."""
+    src = Path(src)
+    if not src.is_dir():
+        raise CSAInputError(src, "7-Scenes folder not found")
+    if every < 1:
+        raise CSAInputError("--every", f"must be >= 1, got {every}")
+    found = sorted((int(m.group(1)), p) for p in src.iterdir() if (m := FRAME_RE.match(p.name)))
+    if not found:
+        raise CSAInputError(src, "no frame-XXXXXX.color.jpg files (is this a 7-Scenes sequence folder?)")
+    found = found[::every]
+    first = imf.read_color(found[0][1])
+    color_size = (first.shape[1], first.shape[0])
+    k_path = src / "camera-intrinsics.txt"
+    if k_path.is_file():
+        cam = Intrinsics.from_matrix(imf.read_matrix(k_path, ((3, 3), (4, 4))), *color_size)
+    else:
+        cam = Intrinsics(DEFAULT_FOCAL, DEFAULT_FOCAL, color_size[0] / 2, color_size[1] / 2, *color_size)
+    work = cam.scaled(*size) if size is not None else cam
+
+    def load(item: tuple[int, Path]) -> Frame | SkippedFrame:
+        idx, cpath = item
+        stem = cpath.name.split(".color.")[0]
+        pose_path = src / f"{stem}.pose.txt"
+        if not pose_path.is_file():
+            raise CSAInputError(pose_path, "pose file missing")
+        pose = imf.read_matrix(pose_path, ((4, 4),))
+        if not np.all(np.isfinite(pose)):
+            return SkippedFrame(str(idx), f"{pose_path}: pose is not finite")
+        color = imf.read_color(cpath)
+        if (color.shape[1], color.shape[0]) != color_size:
+            raise CSAInputError(cpath, f"size mismatch: {color.shape[1]}x{color.shape[0]}, expected {color_size[0]}x{color_size[1]}")
+        frame = Frame(name=str(idx), color=resize_color(color, work.width, work.height), pose=pose)
+        dpath = src / f"{stem}.depth.png"
+        if not dpath.is_file():
+            raise CSAInputError(dpath, "depth file missing")
+        mm = imf.read_depth_mm(dpath)
+        mm = np.where(mm == KINECT_INVALID_MM, 0, mm).astype(np.uint16)
+        frame.depth = resample_nearest(mm, cam.scaled(mm.shape[1], mm.shape[0]), work).astype(np.float32) / 1000.0
+        return frame
+
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        loaded = list(pool.map(load, found))
+    frames = [f for f in loaded if isinstance(f, Frame)]
+    skipped = [f for f in loaded if isinstance(f, SkippedFrame)]
+    if not frames:
+        raise CSAInputError(src, "no frame has a finite pose")
+    return Scene(name=src.name, intrinsics=work, frames=frames, skipped=skipped, root=src)
+
+
+def import_7scenes(src: str | Path, out: str | Path, every: int = 1, size: tuple[int, int] | None = None, overwrite: bool = False) -> Scene:
+    """Convert a 7-Scenes sequence into a scene folder at ``out`` (colour stored as JPEG, like ScanNet)."""
+    scene = load_7scenes(src, every=every, size=size)
+    write_scene(scene, out, overwrite=overwrite, color_ext=".jpg")
+    return scene

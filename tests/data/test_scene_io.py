@@ -1,0 +1,196 @@
+"""The scene-folder reader and writer: round trips, ScanNet quirks and bad input."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from csa_core.data import image_files as imf
+from csa_core.data.camera import Intrinsics
+from csa_core.data.scene import split_point
+from csa_core.data.scene_io import read_label_folder, read_scene, write_label_folder, write_scene
+from csa_core.errors import CSAInputError
+from tests.tiny_scenes import make_random_scene
+
+
+def test_round_trip_is_exact(tmp_path, random_scene):
+    out = write_scene(random_scene, tmp_path / "s")
+    back = read_scene(out, labels="all")
+    assert [f.name for f in back.frames] == ["0", "10", "20", "30", "40"]
+    assert back.intrinsics == random_scene.intrinsics
+    for a, b in zip(random_scene.frames, back.frames, strict=True):
+        np.testing.assert_array_equal(a.color, b.color)
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_array_equal(a.pose, b.pose)
+        np.testing.assert_array_equal(a.labels["label-nyu40"], b.labels["label-nyu40"])
+        assert b.depth.dtype == np.float32 and b.labels["label-nyu40"].dtype == np.uint8
+
+
+def test_frames_sort_numerically_not_lexically(tmp_path):
+    scene = make_random_scene(n=12)
+    for i, f in enumerate(scene.frames):
+        f.name = str(i)
+    back = read_scene(write_scene(scene, tmp_path / "s"))
+    assert [f.name for f in back.frames] == [str(i) for i in range(12)]
+
+
+def test_split_is_first_80_percent(tmp_path):
+    scene = make_random_scene(n=10)
+    back = read_scene(write_scene(scene, tmp_path / "s"))
+    assert [f.name for f in back.train_frames] == [str(i * 10) for i in range(8)]
+    assert [f.name for f in back.val_frames] == ["80", "90"]
+    assert split_point(100) == 80 and split_point(2) == 1 and split_point(1) == 1
+
+
+def test_every_nth_then_split(tmp_path):
+    scene = make_random_scene(n=10)
+    back = read_scene(write_scene(scene, tmp_path / "s"), every=3)
+    assert [f.name for f in back.frames] == ["0", "30", "60", "90"]
+    assert back.num_train == 3
+
+
+def test_resize_scales_intrinsics_and_uses_nearest_for_depth_and_labels(tmp_path):
+    scene = make_random_scene(n=2, size=(32, 24))
+    back = read_scene(write_scene(scene, tmp_path / "s"), size=(16, 12), labels="all")
+    k = back.intrinsics
+    assert (k.width, k.height) == (16, 12)
+    assert k.fx == pytest.approx(15.0) and k.fy == pytest.approx(15.5)
+    # pixel (i, j) at half size covers source pixels 2i..2i+1; nearest picks one of them
+    src, dst = scene.frames[0], back.frames[0]
+    for name, a, b in (("depth", src.depth, dst.depth), ("labels", src.labels["label-nyu40"], dst.labels["label-nyu40"])):
+        blocks = a.reshape(12, 2, 16, 2).transpose(0, 2, 1, 3).reshape(12, 16, 4)
+        assert np.all((blocks == b[..., None]).any(-1)), name
+    assert dst.color.shape == (12, 16, 3)
+
+
+def _scannet_like(tmp_path: Path) -> Path:
+    """Colour 64x48 and depth 32x24 with a different camera, as in ScanNet exports."""
+    root = tmp_path / "scene0000_00"
+    for d in ("color", "depth", "pose", "intrinsic", "label-filt"):
+        (root / d).mkdir(parents=True)
+    Kc = np.array([[60.0, 0, 31.5, 0], [0, 60.0, 23.5, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    Kd = np.array([[28.0, 0, 16.0, 0], [0, 28.0, 11.0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    np.savetxt(root / "intrinsic" / "intrinsic_color.txt", Kc)
+    np.savetxt(root / "intrinsic" / "intrinsic_depth.txt", Kd)
+    u, v = np.meshgrid(np.arange(32), np.arange(24))
+    depth_mm = (1000 + 10 * u + 1000 * v).astype(np.uint16)  # encodes the depth pixel it came from
+    rng = np.random.default_rng(0)
+    for i in range(5):
+        cv2.imwrite(str(root / "color" / f"{i}.jpg"), rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+        cv2.imwrite(str(root / "depth" / f"{i}.png"), depth_mm)
+        raw = np.full((48, 64), 7, np.uint16)
+        raw[:, 32:] = 1164  # a raw id that maps to NYU40 via the tsv
+        raw[:5] = 999  # not in the tsv -> unknown
+        cv2.imwrite(str(root / "label-filt" / f"{i}.png"), raw)
+        pose = np.eye(4)
+        pose[0, 3] = i
+        if i == 2:
+            pose[:] = -np.inf
+        np.savetxt(root / "pose" / f"{i}.txt", pose)
+    (tmp_path / "labels.tsv").write_text("id\traw_category\tcategory\tcount\tnyu40id\tnyu40class\n7\tchair\tchair\t1\t5\tchair\n1164\tbed\tbed\t1\t4\tbed\n")
+    return root
+
+
+def test_scannet_quirks(tmp_path):
+    root = _scannet_like(tmp_path)
+    scene = read_scene(root, size=(32, 24), label_map=tmp_path / "labels.tsv")
+    assert [f.name for f in scene.frames] == ["0", "1", "3", "4"]
+    assert [s.name for s in scene.skipped] == ["2"] and "not finite" in scene.skipped[0].reason
+    k = scene.intrinsics
+    assert (k.width, k.height, k.fx) == (32, 24, 30.0)
+    # depth comes from the depth camera: working pixel (u, v) sees depth pixel
+    # u_d = 28/30 (u - cx_w) + 16, v_d = 28/30 (v - cy_w) + 11
+    d = scene.frames[0].depth
+    for u, v in ((5, 5), (20, 12), (16, 11)):
+        ud = round(28 / 30 * (u - k.cx) + 16)
+        vd = round(28 / 30 * (v - k.cy) + 11)
+        assert d[v, u] == pytest.approx((1000 + 10 * ud + 1000 * vd) / 1000.0)
+    lab = scene.frames[0].labels["label-nyu40"]
+    assert set(np.unique(lab[5:, :14])) == {5} and set(np.unique(lab[5:, 18:])) == {4}
+    assert np.all(lab[:2] == 0)
+
+
+def test_label_filt_needs_label_map(tmp_path):
+    root = _scannet_like(tmp_path)
+    assert "label-nyu40" not in read_scene(root).label_folders  # skipped silently by default
+    with pytest.raises(CSAInputError, match="scannetv2-labels.combined.tsv"):
+        read_scene(root, labels=["label-filt"])
+
+
+def test_label_map_missing_columns(tmp_path):
+    root = _scannet_like(tmp_path)
+    (tmp_path / "bad.tsv").write_text("raw\tnyu\n1\t2\n")
+    with pytest.raises(CSAInputError, match=r"bad.tsv: missing column\(s\) id, nyu40id"):
+        read_scene(root, label_map=tmp_path / "bad.tsv")
+
+
+def test_named_label_folder_and_unknown_folder(tmp_path, random_scene):
+    for f in random_scene.frames:
+        f.labels["pred-v1"] = f.labels["label-nyu40"] // 2
+    root = write_scene(random_scene, tmp_path / "s")
+    scene = read_scene(root, labels=["pred-v1"])
+    assert scene.label_folders == ["pred-v1"]
+    with pytest.raises(CSAInputError, match=r"unknown label folder 'nope' \(this scene has: label-nyu40, pred-v1\)"):
+        read_scene(root, labels=["nope"])
+
+
+def test_missing_depth_is_kept_missing(tmp_path, random_scene):
+    root = write_scene(random_scene, tmp_path / "s")
+    back = read_scene(root)
+    src = random_scene.frames[1]
+    assert np.array_equal(back.frames[1].depth_mask, src.depth > 0)
+    shutil.rmtree(root / "depth")
+    assert read_scene(root).frames[0].depth is None
+
+
+@pytest.mark.parametrize(
+    ("break_it", "pattern"),
+    [
+        (lambda r: (r / "color" / "10.png").write_bytes(b"not an image"), r"color/10.png: cannot decode image"),
+        (lambda r: cv2.imwrite(str(r / "color" / "20.png"), np.zeros((5, 5, 3), np.uint8)), r"color/20.png: size mismatch"),
+        (lambda r: cv2.imwrite(str(r / "depth" / "30.png"), np.zeros((24, 32), np.uint8)), r"depth/30.png: depth must be a single-channel uint16"),
+        (lambda r: (r / "pose" / "40.txt").unlink(), r"pose/40.txt: file not found"),
+        (lambda r: (r / "pose" / "0.txt").write_text("1 0 0\n0 1 0\n"), r"pose/0.txt: expected a 4x4 matrix, got 2x3"),
+        (lambda r: (r / "intrinsic" / "intrinsic_color.txt").unlink(), r"intrinsic_color.txt: file not found"),
+        (lambda r: cv2.imwrite(str(r / "label-nyu40" / "0.png"), np.full((24, 32), 41, np.uint8)), r"label-nyu40/0.png: label id 41 is out of range"),
+        (lambda r: shutil.rmtree(r / "pose"), r"pose: folder missing"),
+    ],
+)
+def test_bad_input_names_the_file(tmp_path, random_scene, break_it, pattern):
+    root = write_scene(random_scene, tmp_path / "s")
+    break_it(root)
+    with pytest.raises(CSAInputError, match=pattern):
+        read_scene(root, labels="all")
+
+
+def test_write_is_all_or_nothing(tmp_path, random_scene):
+    random_scene.frames[3].color = random_scene.frames[3].color[:5]
+    with pytest.raises(CSAInputError, match="frame 30"):
+        write_scene(random_scene, tmp_path / "s")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_refuses_to_overwrite(tmp_path, random_scene):
+    root = write_scene(random_scene, tmp_path / "s")
+    with pytest.raises(CSAInputError, match="already exists"):
+        write_scene(random_scene, root)
+    write_scene(make_random_scene(n=2), root, overwrite=True)
+    assert len(read_scene(root)) == 2
+
+
+def test_label_folder_round_trip(tmp_path):
+    labs = {"3": np.arange(12, dtype=np.uint8).reshape(3, 4), "1": np.zeros((3, 4), np.uint8)}
+    back = read_label_folder(write_label_folder(tmp_path / "pred", labs))
+    assert list(back) == ["1", "3"]
+    np.testing.assert_array_equal(back["3"], labs["3"])
+
+
+def test_intrinsics_scaling_keeps_pixel_centres():
+    k = Intrinsics(100.0, 100.0, 63.5, 47.5, 128, 96)
+    half = k.scaled(64, 48)
+    assert (half.cx, half.cy) == (31.5, 23.5)  # image centre stays the image centre
+    assert imf.depth_to_mm(np.array([0.0, 1.2344, np.nan, 70.0])).tolist() == [0, 1234, 0, 0]
