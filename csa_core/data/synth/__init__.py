@@ -1,0 +1,37 @@
+"""Procedural synthetic rooms: the project's embedded default data.
+
+Rooms are boxes (walls, floor, ceiling, furniture built from several boxes) with
+procedural textures and Lambertian lighting, seen by a camera walking through them; every
+frame has colour, z-depth, a camera-to-world pose and exact NYU40 labels. Families of rooms
+differ in layout, appearance and light, to create domain shift between scenes.
+"""
+
+from csa_core.data.synth.families import (
+    FAMILIES,
+    Lighting,
+    Look,
+    RoomFamily,
+    family_names,
+    get_family,
+)
+from csa_core.data.synth.generate import (
+    generate_scene,
+    intrinsics_for,
+    parse_size,
+    scene_seed,
+    synthesize,
+)
+
+__all__ = [
+    "FAMILIES",
+    "Lighting",
+    "Look",
+    "RoomFamily",
+    "family_names",
+    "generate_scene",
+    "get_family",
+    "intrinsics_for",
+    "parse_size",
+    "scene_seed",
+    "synthesize",
+]
