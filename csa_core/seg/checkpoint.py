@@ -1,0 +1,205 @@
+"""Segmentation checkpoints: safetensors weights plus a JSON model card in the file header.
+
+One file is enough to rebuild the network: the card names the architecture, the classes, the
+input normalisation and how the weights were made (training config, parent checkpoint,
+lineage, scores). Loading never unpickles anything.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field, fields
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
+from torch import Tensor
+
+from csa_core.atomic_io import atomic_file
+from csa_core.data.nyu40 import CLASS_NAMES, NUM_CLASSES
+from csa_core.errors import CSAInputError
+from csa_core.seg.models import ARCHS, IMAGENET_MEAN, IMAGENET_STD, SegmentationNet, build_model
+
+FORMAT = "csa-seg-checkpoint/1"
+_HEADER_KEY = "csa"
+
+
+@dataclass
+class ModelCard:
+    """What a checkpoint says about its network; everything needed to rebuild and use it.
+
+    ``class_names[k]`` names output channel ``k`` (NYU40 id ``k + 1``). ``input_size`` is
+    the (width, height) the network was trained at, a sensible default for inference.
+    ``parent`` identifies the checkpoint this one was trained from (its ``weights_id`` or
+    path) and ``lineage`` the chain of ancestors, oldest first.
+    """
+
+    arch: str
+    num_classes: int = NUM_CLASSES
+    class_names: list[str] = field(default_factory=lambda: list(CLASS_NAMES[1:]))
+    mean: list[float] = field(default_factory=lambda: list(IMAGENET_MEAN))
+    std: list[float] = field(default_factory=lambda: list(IMAGENET_STD))
+    input_size: list[int] | None = None
+    train_config: dict[str, Any] = field(default_factory=dict)
+    metrics: dict[str, Any] = field(default_factory=dict)
+    parent: str | None = None
+    lineage: list[str] = field(default_factory=list)
+    created: str = ""
+    weights_id: str = ""
+    format: str = FORMAT
+
+    @classmethod
+    def for_model(cls, model: SegmentationNet, **values: Any) -> ModelCard:
+        """A card describing ``model``; ``values`` fill the remaining fields."""
+        mean, std = model.normalization
+        return cls(
+            arch=model.arch, num_classes=model.num_classes, mean=list(mean), std=list(std), **values
+        )
+
+    def child(self, **values: Any) -> ModelCard:
+        """Card of a network trained from this one: same architecture, classes and input, with
+        ``parent`` set to this card's ``weights_id`` and the lineage extended; ``values``
+        fill the rest (typically ``train_config`` and ``metrics``)."""
+        base = {f.name: getattr(self, f.name) for f in fields(self)}
+        base.update(train_config={}, metrics={}, created="", weights_id="")
+        base.update(
+            parent=self.weights_id or None,
+            lineage=[*self.lineage, self.weights_id] if self.weights_id else list(self.lineage),
+        )
+        return ModelCard(**{**base, **values})
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), sort_keys=True, default=_jsonable)
+
+    @classmethod
+    def from_json(cls, text: str) -> ModelCard:
+        data = json.loads(text)
+        if not isinstance(data, dict):
+            raise ValueError("model card is not a JSON object")
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in known})
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, tuple | set):
+        return list(value)
+    raise TypeError(f"not JSON-serialisable: {type(value).__name__}")
+
+
+def weights_id(tensors: dict[str, Tensor]) -> str:
+    """Short content hash of a state dict (names, dtypes, shapes and bytes)."""
+    h = hashlib.sha256()
+    for name in sorted(tensors):
+        t = tensors[name].detach().cpu().contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def save_checkpoint(
+    path: str | Path, model: SegmentationNet, card: ModelCard | None = None
+) -> ModelCard:
+    """Write ``model`` and its card to ``path`` atomically; returns the card as written.
+
+    The card's ``arch``, ``num_classes`` and normalisation are taken from the model, and
+    ``created`` and ``weights_id`` are filled in.
+    """
+    tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    card = card if card is not None else ModelCard(arch=model.arch)
+    mean, std = model.normalization
+    written = ModelCard(
+        **{
+            **asdict(card),
+            "arch": model.arch,
+            "num_classes": model.num_classes,
+            "mean": list(mean),
+            "std": list(std),
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
+            "weights_id": weights_id(tensors),
+        }
+    )
+    if len(written.class_names) != written.num_classes:
+        raise ValueError(
+            f"save_checkpoint: {len(written.class_names)} class names for {written.num_classes} outputs"
+        )
+    with atomic_file(path) as tmp:
+        save_file(tensors, str(tmp), metadata={_HEADER_KEY: written.to_json()})
+    return written
+
+
+def read_safetensors(path: str | Path) -> tuple[dict[str, Tensor], dict[str, str]]:
+    """All tensors (on CPU) and the string metadata of a safetensors file; errors name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise CSAInputError(path, "checkpoint file not found")
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            metadata = dict(f.metadata() or {})
+            tensors = {name: f.get_tensor(name) for name in f.keys()}
+    except (SafetensorError, OSError, RuntimeError, ValueError) as e:
+        raise CSAInputError(path, f"not a readable safetensors file ({e})") from None
+    return tensors, metadata
+
+
+def read_model_card(path: str | Path) -> ModelCard:
+    """The card of a checkpoint, without building the network."""
+    _, metadata = read_safetensors(path)
+    return _card_from_metadata(path, metadata)
+
+
+def _card_from_metadata(path: str | Path, metadata: dict[str, str]) -> ModelCard:
+    if _HEADER_KEY not in metadata:
+        raise CSAInputError(
+            path, "safetensors file without a CSA model card (not a CSA segmentation checkpoint)"
+        )
+    try:
+        card = ModelCard.from_json(metadata[_HEADER_KEY])
+    except (ValueError, TypeError) as e:
+        raise CSAInputError(path, f"model card is not valid ({e})") from None
+    if card.format != FORMAT:
+        raise CSAInputError(
+            path, f"unsupported checkpoint format {card.format!r} (expected {FORMAT})"
+        )
+    if card.arch not in ARCHS:
+        raise CSAInputError(path, f"unknown architecture {card.arch!r} (known: {', '.join(ARCHS)})")
+    if len(card.mean) != 3 or len(card.std) != 3 or min(card.std) <= 0:
+        raise CSAInputError(path, "model card: mean and std must have 3 entries, std > 0")
+    return card
+
+
+def load_checkpoint(
+    path: str | Path, device: str | torch.device = "cpu"
+) -> tuple[SegmentationNet, ModelCard]:
+    """Rebuild the network stored at ``path``; returns it in eval mode on ``device`` with its card.
+
+    A missing, truncated or foreign file, or weights that do not fit the card's architecture,
+    raise :class:`CSAInputError` naming the file.
+    """
+    tensors, metadata = read_safetensors(path)
+    card = _card_from_metadata(path, metadata)
+    model = build_model(card.arch, num_classes=card.num_classes, mean=card.mean, std=card.std)
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(tensors))
+    unexpected = sorted(set(tensors) - set(expected))
+    if missing or unexpected:
+        detail = f"missing {missing[:3]}" if missing else f"unexpected {unexpected[:3]}"
+        raise CSAInputError(path, f"weights do not match {card.arch}: {detail}")
+    wrong = [
+        k
+        for k, v in tensors.items()
+        if v.shape != expected[k].shape or v.dtype != expected[k].dtype
+    ]
+    if wrong:
+        k = wrong[0]
+        raise CSAInputError(
+            path,
+            f"tensor {k} is {tensors[k].dtype} {tuple(tensors[k].shape)}, {card.arch} needs {expected[k].dtype} {tuple(expected[k].shape)}",
+        )
+    model.load_state_dict(tensors)
+    return model.to(device).eval(), card

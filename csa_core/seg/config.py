@@ -1,0 +1,104 @@
+"""Settings of segmentation training, kept free of torch so command lines can show them cheaply.
+
+Pre-training values are ours, sized for a light network on a 2-core CPU; the paper's values
+(DESIGN.md, reference numbers) are named as such.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from csa_core.data.scene import NYU40_FOLDER
+
+# Architectures csa_core.seg.models can build (torchvision names).
+ARCH_NAMES = (
+    "deeplabv3_resnet101",
+    "deeplabv3_resnet50",
+    "deeplabv3_mobilenet_v3_large",
+    "lraspp_mobilenet_v3_large",
+)
+# DESIGN.md reference numbers: DeepLabv3-ResNet101, 40 NYU classes.
+PAPER_ARCH = "deeplabv3_resnet101"
+DEFAULT_ARCH = "lraspp_mobilenet_v3_large"  # ours: 3.2 M parameters, trains on a CPU
+
+# DESIGN.md reference numbers (the paper's adaptation setting): segmentation Adam lr 1e-5, batch 4.
+PAPER_ADAPT_LR = 1e-5
+PAPER_ADAPT_BATCH_SIZE = 4
+
+SCHEDULES = ("poly", "cosine", "constant")
+
+
+@dataclass
+class TrainConfig:
+    """Optimiser, schedule and loop settings.
+
+    The defaults are ours, for pre-training a light network from scratch on a CPU; the
+    paper's adaptation values are :meth:`paper_adaptation`. ``lr`` is Adam's initial rate,
+    decayed per step to 0 by ``schedule`` (``poly``: (1 - t)^poly_power, ``cosine`` or
+    ``constant``). Every ``val_every`` epochs (and after the last) the model is scored.
+    Before each validation the BatchNorm running statistics are recomputed on up to
+    ``precise_bn_images`` training images (0 disables): in a run of a few hundred steps the
+    running averages lag far behind the weights (MobileNetV3's momentum is 0.01), and a
+    network scored with stale statistics looks much worse than it is.
+    """
+
+    epochs: int = 12
+    batch_size: int = 8
+    lr: float = 2e-3
+    schedule: str = "poly"
+    poly_power: float = 0.9
+    weight_decay: float = 0.0
+    precise_bn_images: int = 128
+    seed: int = 0
+    val_every: int = 1
+    device: str | None = None
+    progress: bool = True
+
+    @classmethod
+    def paper_adaptation(cls, **overrides: Any) -> TrainConfig:
+        """The paper's fine-tuning setting (Adam lr 1e-5, batch 4, see DESIGN.md)."""
+        return cls(**{"lr": PAPER_ADAPT_LR, "batch_size": PAPER_ADAPT_BATCH_SIZE, **overrides})
+
+    def __post_init__(self) -> None:
+        if self.schedule not in SCHEDULES:
+            raise ValueError(
+                f"TrainConfig: schedule must be one of {SCHEDULES}, got {self.schedule!r}"
+            )
+        if self.epochs < 1 or self.batch_size < 1 or self.val_every < 1:
+            raise ValueError("TrainConfig: epochs, batch_size and val_every must be >= 1")
+        if not self.lr > 0:
+            raise ValueError(f"TrainConfig: lr must be > 0, got {self.lr}")
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Strengths of the training augmentations (ours; the paper does not list them).
+
+    ``crop_scale`` is the range of the crop's area as a fraction of the image; crops keep the
+    image's aspect ratio within a factor ``1 + crop_aspect_jitter`` and are resized back to the
+    input size. ``rotation_deg`` is the largest rotation either way; ``grayscale`` is the
+    probability of dropping colour altogether. Zero disables a step.
+    """
+
+    hflip: float = 0.5
+    rotation_deg: float = 5.0
+    crop_scale: tuple[float, float] = (0.5, 1.0)
+    crop_aspect_jitter: float = 0.1
+    brightness: float = 0.3
+    contrast: float = 0.3
+    saturation: float = 0.3
+    hue: float = 0.02
+    grayscale: float = 0.0
+
+
+@dataclass
+class PretrainConfig:
+    """Network, data and training settings of a pre-training run (ours, sized so the light
+    network pre-trains on a few 160x120 synthetic rooms in minutes on a 2-core CPU)."""
+
+    arch: str = DEFAULT_ARCH
+    size: tuple[int, int] = (160, 120)
+    label_folder: str = NYU40_FOLDER
+    augment: AugmentConfig | None = field(default_factory=AugmentConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
