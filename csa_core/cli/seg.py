@@ -217,8 +217,8 @@ def _pretrain(args: argparse.Namespace) -> int:
 
 
 def _load(args: argparse.Namespace):
+    from csa_core.device import resolve_device
     from csa_core.seg.checkpoint import load_checkpoint
-    from csa_core.seg.device import resolve_device
 
     _setup_threads(args)
     model, card = load_checkpoint(args.checkpoint, device=resolve_device(args.device))

@@ -19,7 +19,7 @@ from csa_core.errors import CSAInputError
 
 log = logging.getLogger(__name__)
 
-RESERVED_FOLDERS = {"color", "depth", "pose", "intrinsic"}
+RESERVED_FOLDERS = {"color", "depth", "pose", "intrinsic", "preview"}  # preview: colourised renders
 LabelSpec = None | str | Sequence[str]
 
 

@@ -17,7 +17,6 @@ _EXPORTS = {
         "AugmentConfig", "PretrainConfig", "TrainConfig",
     ),
     "dataset": ("SegmentationDataset",),
-    "device": ("resolve_device",),
     "losses": ("IGNORE_INDEX", "nyu40_to_target", "segmentation_loss"),
     "models": ("ARCHS", "SegmentationNet", "build_model"),
     "predict": ("evaluate_scene", "predict_labels", "predict_logits", "predict_scene"),

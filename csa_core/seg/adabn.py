@@ -17,7 +17,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.modules.batchnorm import _BatchNorm
 
-from csa_core.seg.device import resolve_device
+from csa_core.device import resolve_device
 from csa_core.seg.predict import Images, as_image_list
 from csa_core.seg.transforms import image_to_tensor, to_float_image
 

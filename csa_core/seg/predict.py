@@ -10,9 +10,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from csa_core.data.scene import NYU40_FOLDER, Scene
+from csa_core.device import resolve_device
 from csa_core.errors import CSAInputError
 from csa_core.eval.miou import ConfusionMatrix
-from csa_core.seg.device import resolve_device
 from csa_core.seg.transforms import image_to_tensor, to_float_image
 
 Images = np.ndarray | Sequence[np.ndarray]

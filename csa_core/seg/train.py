@@ -24,12 +24,12 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
+from csa_core.device import resolve_device
 from csa_core.eval.miou import ConfusionMatrix
 from csa_core.seg.adabn import recompute_batchnorm
 from csa_core.seg.checkpoint import ModelCard, save_checkpoint
 from csa_core.seg.config import TrainConfig
 from csa_core.seg.dataset import SegmentationDataset
-from csa_core.seg.device import resolve_device
 from csa_core.seg.losses import segmentation_loss
 from csa_core.seg.models import SegmentationNet
 from csa_core.seg.predict import predict_labels

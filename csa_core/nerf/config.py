@@ -1,0 +1,172 @@
+"""Configuration of the Semantic-NeRF: one dataclass per component, presets as config values.
+
+``reference`` follows the paper and its official code (DESIGN.md "Reference numbers");
+``fast`` is our CPU-friendly variant (smaller table, depth-guided training samples,
+occupancy-grid rendering, fp16 checkpoints). Every fitted checkpoint stores the full config.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass
+from dataclasses import field as _field
+from typing import Any, Literal
+
+from csa_core.data.nyu40 import NUM_CLASSES
+
+
+@dataclass
+class HashEncodingConfig:
+    """Multi-resolution hash grid (Instant-NGP)."""
+
+    num_levels: int = 16  # DESIGN.md: 16 levels
+    features_per_level: int = 2  # DESIGN.md: 2 features per level
+    log2_table_size: int = 19  # DESIGN.md: table 2^19 (reference)
+    base_resolution: int = 16  # DESIGN.md: base resolution 16
+    finest_resolution: int = 2048  # Instant-NGP / torch-ngp default for unit-cube scenes
+
+
+@dataclass
+class FieldConfig:
+    """Density, colour and semantic heads on top of the hash encoding."""
+
+    encoding: HashEncodingConfig = _field(default_factory=HashEncodingConfig)
+    hidden_dim: int = 64  # DESIGN.md: all MLPs 64 wide
+    density_hidden_layers: int = 1  # DESIGN.md: density MLP, 1 hidden layer
+    geo_features: int = 15  # DESIGN.md: 15 geometry features beside the density
+    color_hidden_layers: int = 2  # DESIGN.md: colour MLP 2-3 layers of 64
+    semantic_hidden_layers: int = 2  # DESIGN.md: semantic MLP 2 layers of 64
+    # Ours: the semantic head also reads its own feature table, laid out like the first
+    # ``semantic_grid_levels`` levels of the hash grid and interpolated with the same corners.
+    # Only the semantic loss trains it, so geometry still gets no semantic gradient; the detached
+    # 15 geometry features alone could not fit even clean labels in our tests. 0 = paper (geometry features only).
+    semantic_grid_levels: int = 12
+    sh_degree: int = 4  # spherical harmonics of the view direction (16 coefficients)
+    num_classes: int = NUM_CLASSES  # NYU40 ids 1..40 -> channels 0..39
+
+
+@dataclass
+class SamplerConfig:
+    """Where samples go along each ray, in training and in rendering.
+
+    ``reference``: stratified uniform samples, then importance samples from their weights
+    (paper: 256 + 256). ``depth``: depth-guided (training only; rays without a measurement
+    fall back to stratified samples). ``occupancy``: ray marching that skips empty cells of an
+    occupancy grid (rendering, and training rays without depth).
+    """
+
+    train: Literal["reference", "depth", "occupancy"] = "reference"
+    render: Literal["reference", "occupancy"] = "reference"
+    uniform_samples: int = 256  # DESIGN.md: 256 uniform samples per ray
+    importance_samples: int = 256  # DESIGN.md: 256 importance samples per ray
+    near: float = 0.05  # metres in front of the camera where rays start
+    depth_band: float = (
+        0.10  # depth-guided: half-width (metres) of the band around the measured depth
+    )
+    depth_band_fraction: float = (
+        0.02  # ... widened by this fraction of the depth (sensor noise grows with range)
+    )
+    band_samples: int = 8  # depth-guided: samples inside the band
+    spread_samples: int = 8  # depth-guided: stratified samples over the rest of the ray
+    occupancy_resolution: int = 64  # occupancy grid cells per axis
+    occupancy_threshold: float = 0.01  # a cell is occupied if its density * step exceeds this
+    march_steps: int = 512  # marching step = box diagonal / march_steps
+    occupancy_update_every: int = 16  # training steps between grid updates
+    max_render_samples: int = 96  # occupancy marching: at most this many samples kept per ray
+
+
+@dataclass
+class LossConfig:
+    """Loss weights, DESIGN.md "The method" step 2."""
+
+    color: float = 1.0  # L2 on colour
+    depth: float = 0.1  # w_d: L1 on depth where the sensor measured it
+    semantic: float = 0.04  # w_s: NLL of the normalised rendered class distribution (paper Eq. 3-4)
+    free_space: float = (
+        0.0  # ours (not in the paper): rendering weight in front of the measured surface
+    )
+    free_space_warmup: float = (
+        0.2  # fraction of the steps before the free-space loss starts (ramped in over as many)
+    )
+
+
+@dataclass
+class OptimConfig:
+    """Adam and the ray batch."""
+
+    steps: int = 5000  # ~5 min at 0.06 s/step on an RTX 3090 (DESIGN.md reported cost)
+    rays_per_step: int = 4096  # DESIGN.md: 4096 rays per step
+    lr: float = 1e-2  # DESIGN.md: Adam lr 1e-2
+    betas: tuple[float, float] = (0.9, 0.99)  # DESIGN.md
+    eps: float = 1e-15  # DESIGN.md
+    final_lr_fraction: float = 0.1  # exponential decay to this fraction of lr at the last step
+    weight_decay_mlp: float = 1e-6  # small L2 on MLP weights (Instant-NGP)
+
+
+@dataclass
+class NerfConfig:
+    """Everything that defines a fit; stored in every checkpoint."""
+
+    preset: str = "reference"
+    field: FieldConfig = _field(default_factory=FieldConfig)
+    sampler: SamplerConfig = _field(default_factory=SamplerConfig)
+    loss: LossConfig = _field(default_factory=LossConfig)
+    optim: OptimConfig = _field(default_factory=OptimConfig)
+    storage_dtype: Literal["float32", "float16"] = "float32"  # checkpoint tensors
+    render_chunk: int = 8192  # rays per chunk when rendering
+    seed: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> NerfConfig:
+        d = copy.deepcopy(d)
+        enc = HashEncodingConfig(**d["field"].pop("encoding"))
+        optim = d.pop("optim")
+        optim["betas"] = tuple(optim["betas"])
+        return cls(
+            preset=d["preset"],
+            field=FieldConfig(encoding=enc, **d["field"]),
+            sampler=SamplerConfig(**d["sampler"]),
+            loss=LossConfig(**d["loss"]),
+            optim=OptimConfig(**optim),
+            storage_dtype=d["storage_dtype"],
+            render_chunk=d["render_chunk"],
+            seed=d["seed"],
+        )
+
+
+def _reference() -> NerfConfig:
+    return NerfConfig(preset="reference")
+
+
+def _fast() -> NerfConfig:
+    """CPU-friendly: 2^15 table (fp16 checkpoint with the semantic table ~3.5 MB), depth-guided
+    training samples with a free-space loss, occupancy-grid rendering, fewer rays per step."""
+    return NerfConfig(
+        preset="fast",
+        field=FieldConfig(
+            encoding=HashEncodingConfig(log2_table_size=15, finest_resolution=1024),
+        ),
+        sampler=SamplerConfig(
+            train="depth", render="occupancy", uniform_samples=64, importance_samples=64
+        ),
+        optim=OptimConfig(steps=1500, rays_per_step=1024),
+        loss=LossConfig(free_space=1.0),
+        storage_dtype="float16",
+    )
+
+
+PRESETS = {"reference": _reference, "fast": _fast}
+
+
+def preset(name: str) -> NerfConfig:
+    """A fresh config of the preset ``name`` (``reference`` or ``fast``)."""
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise ValueError(
+            f"unknown NeRF preset {name!r} (choose from {', '.join(PRESETS)})"
+        ) from None

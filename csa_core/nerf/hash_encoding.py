@@ -1,0 +1,181 @@
+"""Multi-resolution hash encoding (Instant-NGP, Mueller et al. 2022) in plain PyTorch.
+
+Positions live in the unit cube [0, 1]^3 (see ``normalization.py``). Level ``l`` has a grid
+of resolution ``N_l = floor(N_min * b^l)`` with ``b`` chosen so the last level reaches
+``finest_resolution``. Coarse levels whose grid fits in the table are indexed densely, finer
+ones through the spatial hash. All levels share one parameter tensor (``table``), each level
+owning a contiguous block of rows, so one gather serves every level and corner.
+
+CPU notes: corner indices and trilinear weights are built per axis (2 values per axis) and
+combined by broadcasting, which is ~8x less integer work than hashing 8 corners; the forward
+pass is one ``embedding_bag`` (gather + weighted sum), the backward pass one ``index_add_``.
+No gradient flows to the positions (the poses are fixed).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from csa_core.nerf.config import HashEncodingConfig
+
+# Spatial-hash primes of Instant-NGP (x uses 1). Arithmetic is done in int64 and masked, so the
+# result equals the uint32 hash of the paper for power-of-two tables.
+_PRIMES = (1, 2654435761, 805459861)
+_INIT_SCALE = 1e-4  # table initialised uniformly in [-1e-4, 1e-4] (Instant-NGP)
+
+
+def level_resolutions(cfg: HashEncodingConfig) -> list[int]:
+    """Grid resolution of every level."""
+    if cfg.num_levels == 1:
+        return [cfg.base_resolution]
+    b = math.exp(
+        (math.log(cfg.finest_resolution) - math.log(cfg.base_resolution)) / (cfg.num_levels - 1)
+    )
+    return [int(math.floor(cfg.base_resolution * b**level)) for level in range(cfg.num_levels)]
+
+
+class _HashGather(torch.autograd.Function):
+    """Weighted gather of table rows for idx, w ``(L, 8, N)``:
+    ``out[l, i] = sum_k w[l, k, i] * table[idx[l, k, i]]`` -> ``(L, N, F)``."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, idx: Tensor, w: Tensor) -> Tensor:
+        ctx.save_for_backward(idx, w)
+        ctx.num_rows = table.shape[0]
+        levels, _, n = idx.shape
+        bags = idx.transpose(1, 2).reshape(levels * n, 8)
+        out = F.embedding_bag(
+            bags, table, per_sample_weights=w.transpose(1, 2).reshape(levels * n, 8), mode="sum"
+        )
+        return out.view(levels, n, -1)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        idx, w = ctx.saved_tensors
+        flat = idx.reshape(-1)
+        if grad.shape[-1] == 2 and grad.dtype == torch.float32:
+            # Two features scatter as one complex64 number: ~3x faster than a 2-column index_add_.
+            gc = torch.view_as_complex(grad.contiguous())  # L N
+            g = torch.zeros(ctx.num_rows, dtype=torch.complex64, device=grad.device)
+            g.index_add_(0, flat, (gc.unsqueeze(1) * w).reshape(-1))
+            return torch.view_as_real(g), None, None
+        src = w.unsqueeze(-1) * grad.unsqueeze(1)  # L 8 N F
+        g = torch.zeros(ctx.num_rows, grad.shape[-1], dtype=grad.dtype, device=grad.device)
+        g.index_add_(0, flat, src.reshape(-1, grad.shape[-1]))
+        return g, None, None
+
+
+class HashEncoding(nn.Module):
+    """``(N, 3)`` positions in [0, 1]^3 -> ``(N, num_levels * features_per_level)`` features."""
+
+    def __init__(self, cfg: HashEncodingConfig, generator: torch.Generator | None = None):
+        super().__init__()
+        self.cfg = cfg
+        table_size = 2**cfg.log2_table_size
+        resolutions = level_resolutions(cfg)
+        sizes, dense, offsets, start = [], [], [], 0
+        for res in resolutions:
+            n_dense = (res + 1) ** 3
+            is_dense = n_dense <= table_size
+            size = n_dense if is_dense else table_size
+            sizes.append(size)
+            dense.append(is_dense)
+            offsets.append(start)
+            start += size
+        if any(dense[i] and not dense[i - 1] for i in range(1, len(dense))):
+            raise ValueError("hash encoding: resolutions must grow with the level")
+        self.level_sizes = sizes
+        self._num_dense = sum(dense)
+        self._hash_mask = table_size - 1
+        self.register_buffer(
+            "resolutions", torch.tensor(resolutions, dtype=torch.float32), persistent=False
+        )
+        self.register_buffer(
+            "_res_int", torch.tensor(resolutions, dtype=torch.int64), persistent=False
+        )
+        self.register_buffer("_offsets", torch.tensor(offsets, dtype=torch.int64), persistent=False)
+        strides = [[1, r + 1, (r + 1) ** 2] for r in resolutions[: self._num_dense]]
+        self.register_buffer(
+            "_dense_strides",
+            torch.tensor(strides, dtype=torch.int64).reshape(-1, 3),
+            persistent=False,
+        )
+        self.register_buffer("_primes", torch.tensor(_PRIMES, dtype=torch.int64), persistent=False)
+        init = (
+            torch.rand(start, cfg.features_per_level, generator=generator) * 2 - 1
+        ) * _INIT_SCALE
+        self.table = nn.Parameter(init)
+
+    @property
+    def out_dim(self) -> int:
+        return self.cfg.num_levels * self.cfg.features_per_level
+
+    def corners(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Table rows and trilinear weights of the 8 cell corners, each ``(L, 8, N)``.
+
+        Level-major, sample-minor layout: every broadcast runs over a contiguous inner
+        dimension of N samples (several times faster on CPU than a trailing corner dimension)
+        and the dense and hashed level groups join by plain concatenation.
+        """
+        levels = self.cfg.num_levels
+        pos = x.detach().clamp(0.0, 1.0).T.unsqueeze(0) * self.resolutions.view(-1, 1, 1)  # L 3 N
+        # Clamped so that a position on the far face interpolates inside the last cell.
+        cell = pos.floor().long().clamp_max(self._res_int.view(-1, 1, 1) - 1)
+        frac = pos - cell
+        w = torch.stack([1 - frac, frac], dim=1)  # L x 2 (corner) x 3 (axis) x N
+        weights = (w[:, :, None, None, 2] * w[:, None, :, None, 1]) * w[
+            :, None, None, :, 0
+        ]  # L z y x N
+        c = torch.stack([cell, cell + 1], dim=1)  # L x 2 x 3 x N
+        nd = self._num_dense
+        n = x.shape[0]
+        rows = torch.empty(
+            levels, 2, 2, 2, n, dtype=torch.long, device=x.device
+        )  # written in place, no concatenation
+        if nd > 0:  # dense levels: x + y * (R + 1) + z * (R + 1)^2 + level offset
+            cd = c[:nd] * self._dense_strides.view(nd, 1, 3, 1)
+            zy = cd[:, :, None, None, 2] + cd[:, None, :, None, 1]
+            torch.add(
+                zy, cd[:, None, None, :, 0] + self._offsets[:nd].view(nd, 1, 1, 1, 1), out=rows[:nd]
+            )
+        if nd < levels:  # hashed levels: (x p0 ^ y p1 ^ z p2) mod T + level offset
+            ch = c[nd:] * self._primes.view(1, 1, 3, 1)
+            hashed = rows[nd:]
+            torch.bitwise_xor(
+                ch[:, :, None, None, 2] ^ ch[:, None, :, None, 1],
+                ch[:, None, None, :, 0],
+                out=hashed,
+            )
+            hashed &= self._hash_mask
+            hashed += self._offsets[nd:].view(-1, 1, 1, 1, 1)
+        return rows.reshape(levels, 8, -1), weights.reshape(levels, 8, -1)
+
+    def level_rows(self, levels: int) -> int:
+        """Number of table rows used by the first ``levels`` levels (their blocks come first)."""
+        return int(sum(self.level_sizes[:levels]))
+
+    def forward(
+        self, x: Tensor, extra: Tensor | None = None, extra_levels: int = 0
+    ) -> Tensor | tuple[Tensor, Tensor]:
+        """Features ``(N, L * F)``; with ``extra`` (a second table laid out like the first
+        ``extra_levels`` levels of this one) also that table's features ``(N, extra_levels * F')``,
+        interpolated with the same corners and weights (computed once)."""
+        n = x.shape[0]
+        if n == 0:
+            empty = x.new_zeros(0, self.out_dim)
+            return (
+                empty if extra is None else (empty, x.new_zeros(0, extra_levels * extra.shape[1]))
+            )
+        rows, weights = self.corners(x)
+        weights = weights.to(self.table.dtype)
+        feats = (
+            _HashGather.apply(self.table, rows, weights).transpose(0, 1).reshape(n, self.out_dim)
+        )
+        if extra is None:
+            return feats
+        more = _HashGather.apply(extra, rows[:extra_levels], weights[:extra_levels])
+        return feats, more.transpose(0, 1).reshape(n, -1)

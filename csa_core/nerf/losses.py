@@ -1,0 +1,66 @@
+"""Losses of the Semantic-NeRF fit (DESIGN.md "The method" step 2; paper Eq. 4)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from csa_core.nerf.config import LossConfig
+from csa_core.nerf.rendering import RaySamples, accumulate_along_rays
+
+_LOG_EPS = 1e-8
+
+
+def color_loss(pred: Tensor, target: Tensor) -> Tensor:
+    """Mean squared error of rendered vs. observed colour in [0, 1]."""
+    return torch.mean((pred - target) ** 2)
+
+
+def depth_loss(pred: Tensor, target: Tensor) -> Tensor:
+    """Mean absolute depth error (metres) over the rays where the sensor measured depth (> 0)."""
+    valid = target > 0
+    if not bool(valid.any()):
+        return pred.sum() * 0.0
+    return torch.mean(torch.abs(pred[valid] - target[valid]))
+
+
+def semantic_loss(probs: Tensor, labels: Tensor) -> Tensor:
+    """Negative log-likelihood of NYU40 ids ``labels`` (R,) under the normalised class
+    distributions ``probs`` (R, 40); channel ``k`` is id ``k + 1``, id 0 (unknown) is ignored."""
+    known = labels > 0
+    if not bool(known.any()):
+        return probs.sum() * 0.0
+    p = probs[known].gather(1, (labels[known].long() - 1).unsqueeze(1)).squeeze(1)
+    return -torch.log(p.clamp_min(_LOG_EPS)).mean()
+
+
+def free_space_loss(weights: Tensor, in_front: Tensor, samples: RaySamples) -> Tensor:
+    """Mean over rays of the rendering weight that falls on samples ``in_front`` (S,) of the
+    measured surface: carves the free space that depth-guided sampling visits only sparsely."""
+    w = accumulate_along_rays(weights * in_front, None, samples).squeeze(-1)
+    return w.mean()
+
+
+def psnr(mse: Tensor | float) -> float:
+    """Peak signal-to-noise ratio (dB) of colours in [0, 1] from their mean squared error."""
+    mse = float(mse)
+    return float("inf") if mse <= 0 else -10.0 * float(torch.log10(torch.tensor(mse)))
+
+
+def total_loss(
+    out: dict[str, Tensor], batch: dict[str, Tensor], cfg: LossConfig
+) -> dict[str, Tensor]:
+    """Weighted sum of the three losses; returns every term and ``loss``."""
+    terms = {"color": color_loss(out["rgb"], batch["rgb"])}
+    total = cfg.color * terms["color"]
+    if cfg.depth > 0 and "depth" in batch:
+        terms["depth"] = depth_loss(out["depth"], batch["depth"])
+        total = total + cfg.depth * terms["depth"]
+    if cfg.semantic > 0 and "labels" in batch and "semantics" in out:
+        terms["semantic"] = semantic_loss(out["semantics"], batch["labels"])
+        total = total + cfg.semantic * terms["semantic"]
+    if cfg.free_space > 0 and "free_space" in out:
+        terms["free_space"] = out["free_space"]
+        total = total + cfg.free_space * terms["free_space"]
+    terms["loss"] = total
+    return terms

@@ -1,0 +1,93 @@
+"""Volume rendering on packed samples (nerfacc-style functional core).
+
+Samples of all rays are packed into flat tensors: ``ray_indices`` (S,) says which ray each
+sample belongs to, ``t_starts``/``t_ends`` (S,) its interval along the ray; samples of one ray
+are contiguous and sorted by ``t``. The renderer knows nothing of colour, depth or classes:
+``accumulate_along_rays`` sums ``weights * values`` per ray for any number of channels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class RaySamples:
+    """Packed samples: ``ray_indices`` (S,) int64, ``t_starts`` / ``t_ends`` (S,) along unit-z rays."""
+
+    ray_indices: Tensor
+    t_starts: Tensor
+    t_ends: Tensor
+    num_rays: int
+    per_ray: int | None = None  # set when every ray has exactly this many samples (dense layout)
+
+    @property
+    def t_mids(self) -> Tensor:
+        return 0.5 * (self.t_starts + self.t_ends)
+
+    def __len__(self) -> int:
+        return int(self.ray_indices.shape[0])
+
+
+def exclusive_sum_along_rays(values: Tensor, samples: RaySamples) -> Tensor:
+    """Per-sample sum of ``values`` over the earlier samples of the same ray."""
+    if samples.per_ray is not None:
+        v = values.view(samples.num_rays, samples.per_ray)
+        return (torch.cumsum(v, dim=1) - v).reshape(-1)
+    if values.numel() == 0:
+        return values
+    # Packed: one global cumulative sum in float64 (no cancellation), minus its value at each ray's start.
+    inclusive = torch.cumsum(values.double(), dim=0)
+    exclusive = inclusive - values.double()
+    ri = samples.ray_indices
+    first = torch.ones_like(ri, dtype=torch.bool)
+    first[1:] = ri[1:] != ri[:-1]
+    start_of = exclusive[first]  # exclusive sum at the first sample of each ray with samples
+    seg = torch.cumsum(first.long(), dim=0) - 1
+    return (exclusive - start_of[seg]).to(values.dtype)
+
+
+def render_weights(
+    sigmas: Tensor, samples: RaySamples, ray_scale: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Volume-rendering weights ``w_i = T_i * alpha_i`` with ``alpha_i = 1 - exp(-sigma_i * dl_i)``.
+
+    ``dl_i`` is the interval length in world units: ``(t_end - t_start) * ray_scale`` where
+    ``ray_scale`` (num_rays,) is the norm of each ray's direction (unit-z rays are longer than
+    one unit per unit of ``t`` off the optical axis). Returns ``(weights, transmittance, alphas)``, each (S,).
+    """
+    dl = samples.t_ends - samples.t_starts
+    if ray_scale is not None:
+        dl = dl * ray_scale[samples.ray_indices]
+    sigma_dt = sigmas * dl
+    alphas = 1.0 - torch.exp(-sigma_dt)
+    transmittance = torch.exp(-exclusive_sum_along_rays(sigma_dt, samples))
+    return transmittance * alphas, transmittance, alphas
+
+
+def accumulate_along_rays(weights: Tensor, values: Tensor | None, samples: RaySamples) -> Tensor:
+    """Sum ``weights * values`` over each ray: ``(S,)`` x ``(S, C)`` -> ``(num_rays, C)``.
+
+    With ``values=None`` the weights themselves are summed (the opacity), shaped (num_rays, 1).
+    Rays without samples get zeros.
+    """
+    src = weights.unsqueeze(-1) if values is None else weights.unsqueeze(-1) * values
+    if samples.per_ray is not None:
+        return src.view(samples.num_rays, samples.per_ray, -1).sum(dim=1)
+    out = src.new_zeros(samples.num_rays, src.shape[-1])
+    return out.index_add_(0, samples.ray_indices, src)
+
+
+def normalized_class_probabilities(
+    weights: Tensor, logits: Tensor, samples: RaySamples, eps: float = 1e-10
+) -> Tensor:
+    """Paper Eq. 3: per-sample softmax weighted by the (detached) rendering weights, summed along
+    the ray and normalised to sum to one -> ``(num_rays, num_classes)``.
+
+    The weights are detached so that the semantic loss cannot move the density.
+    """
+    acc = accumulate_along_rays(weights.detach(), torch.softmax(logits, dim=-1), samples)
+    return acc / (acc.sum(dim=-1, keepdim=True) + eps)

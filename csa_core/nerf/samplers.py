@@ -1,0 +1,320 @@
+"""Where to put samples along rays. Every sampler returns packed ``RaySamples``.
+
+- ``sample_uniform`` / ``sample_reference``: the paper's sampler, stratified samples then
+  importance samples from their weights (256 + 256 in the reference preset).
+- ``sample_depth_guided``: training rays with a measured depth get most samples in a band
+  around it and a few stratified ones over the rest of the ray; the intervals tile
+  ``[t_near, t_far]`` so that free space is still supervised. Rays without depth get stratified
+  samples only (the fallback when a scene has no depth at all).
+- ``OccupancyGrid``: fixed-step marching that drops samples in cells known to be empty.
+
+Rays use unit-z camera directions, so ``t`` is metric z-depth. ``density_fn(points)`` maps
+world points ``(N, 3)`` to densities ``(N,)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor, nn
+
+from csa_core.nerf.normalization import SceneBox
+from csa_core.nerf.rendering import RaySamples, render_weights
+
+DensityFn = Callable[[Tensor], Tensor]
+
+
+def _dense_samples(edges: Tensor) -> RaySamples:
+    """Samples whose intervals are consecutive ``edges`` (R, K + 1) of each ray."""
+    n_rays, k = edges.shape[0], edges.shape[1] - 1
+    ri = torch.arange(n_rays, device=edges.device).repeat_interleave(k)
+    return RaySamples(ri, edges[:, :-1].reshape(-1), edges[:, 1:].reshape(-1), n_rays, per_ray=k)
+
+
+def _stratified_edges(
+    t_near: Tensor, t_far: Tensor, n: int, stratified: bool, generator: torch.Generator | None
+) -> Tensor:
+    """``n`` bins between ``t_near`` and ``t_far`` (R,); inner edges jittered when ``stratified``."""
+    u = torch.linspace(0.0, 1.0, n + 1, device=t_near.device)
+    u = u.expand(t_near.shape[0], n + 1).clone()
+    if stratified and n > 1:
+        jitter = torch.rand(t_near.shape[0], n - 1, device=t_near.device, generator=generator) - 0.5
+        u[:, 1:-1] += jitter / n
+    return t_near[:, None] + (t_far - t_near)[:, None] * u
+
+
+def sample_uniform(
+    t_near: Tensor,
+    t_far: Tensor,
+    n: int,
+    stratified: bool = False,
+    generator: torch.Generator | None = None,
+) -> RaySamples:
+    """``n`` equal (or jittered) intervals per ray between ``t_near`` and ``t_far``."""
+    return _dense_samples(
+        _stratified_edges(t_near, t_far.clamp_min(t_near + 1e-4), n, stratified, generator)
+    )
+
+
+def _sample_pdf(
+    edges: Tensor, weights: Tensor, n: int, stratified: bool, generator: torch.Generator | None
+) -> Tensor:
+    """Inverse-CDF samples ``(R, n)`` of the piecewise-constant density ``weights`` (R, K) on ``edges``."""
+    w = weights + 1e-5
+    pdf = w / w.sum(dim=-1, keepdim=True)
+    cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, dim=-1)], dim=-1).clamp_max(
+        1.0
+    )
+    if stratified:
+        u = (
+            torch.arange(n, device=edges.device)
+            + torch.rand(edges.shape[0], n, device=edges.device, generator=generator)
+        ) / n
+    else:
+        u = (
+            ((torch.arange(n, device=edges.device) + 0.5) / n)
+            .expand(edges.shape[0], n)
+            .contiguous()
+        )
+    idx = torch.searchsorted(cdf, u, right=True).clamp(1, cdf.shape[-1] - 1)
+    c0, c1 = torch.gather(cdf, 1, idx - 1), torch.gather(cdf, 1, idx)
+    e0, e1 = torch.gather(edges, 1, idx - 1), torch.gather(edges, 1, idx)
+    frac = ((u - c0) / (c1 - c0).clamp_min(1e-10)).clamp(0.0, 1.0)
+    return e0 + frac * (e1 - e0)
+
+
+@torch.no_grad()
+def sample_reference(
+    origins: Tensor,
+    dirs: Tensor,
+    t_near: Tensor,
+    t_far: Tensor,
+    density_fn: DensityFn,
+    n_uniform: int,
+    n_importance: int,
+    stratified: bool = False,
+    generator: torch.Generator | None = None,
+) -> RaySamples:
+    """The paper's sampler: ``n_uniform`` stratified samples, their weights from ``density_fn``,
+    then ``n_importance`` samples from those weights; returns the sorted union as intervals."""
+    t_far = t_far.clamp_min(t_near + 1e-4)
+    coarse = sample_uniform(t_near, t_far, n_uniform, stratified, generator)
+    mids = coarse.t_mids
+    pts = origins[coarse.ray_indices] + dirs[coarse.ray_indices] * mids[:, None]
+    weights, _, _ = render_weights(density_fn(pts), coarse, dirs.norm(dim=-1))
+    edges = torch.cat(
+        [coarse.t_starts.view(-1, n_uniform), coarse.t_ends.view(-1, n_uniform)[:, -1:]], dim=1
+    )
+    fine = _sample_pdf(edges, weights.view(-1, n_uniform), n_importance, stratified, generator)
+    # Union of coarse midpoints and fine samples, sorted; intervals between consecutive midpoints.
+    t = torch.sort(torch.cat([mids.view(-1, n_uniform), fine], dim=1), dim=1).values
+    bounds = torch.cat([t_near[:, None], 0.5 * (t[:, 1:] + t[:, :-1]), t_far[:, None]], dim=1)
+    return _dense_samples(bounds)
+
+
+def sample_depth_guided(
+    t_near: Tensor,
+    t_far: Tensor,
+    depth: Tensor,
+    n_band: int,
+    n_spread: int,
+    band: float,
+    band_fraction: float = 0.0,
+    stratified: bool = True,
+    generator: torch.Generator | None = None,
+) -> RaySamples:
+    """``n_band`` intervals inside ``depth +- (band + band_fraction * depth)`` and ``n_spread``
+    intervals over the rest of ``[t_near, t_far]`` (split in proportion to the lengths in front
+    of and behind the band); rays with ``depth <= 0`` get ``n_band + n_spread`` stratified
+    intervals over the whole ray. Every ray gets exactly ``n_band + n_spread`` samples."""
+    t_far = t_far.clamp_min(t_near + 1e-4)
+    half = band + band_fraction * depth
+    has = depth > 0
+    lo = torch.where(has, (depth - half).clamp(min=t_near, max=t_far), t_near)
+    hi = torch.where(has, (depth + half).clamp(min=t_near, max=t_far), t_near)
+    hi = torch.maximum(hi, lo)
+    front, back = lo - t_near, t_far - hi
+    # Spread samples before the band, at least one when there is room.
+    n_front = torch.round(n_spread * front / (front + back).clamp_min(1e-6)).long()
+    n_front = torch.where(front > 1e-4, n_front.clamp(1, n_spread), torch.zeros_like(n_front))
+    n_front = torch.where(
+        back > 1e-4, n_front.clamp_max(n_spread - 1), n_front.clamp_max(n_spread)
+    ).clamp_min(0)
+    n_back = n_spread - n_front
+    total = n_band + n_spread
+    r = depth.shape[0]
+    # Bin edges in "segment coordinates": for each output bin k, which segment and which fraction.
+    k = torch.arange(total + 1, device=depth.device).expand(r, total + 1)
+    nf, nb = n_front[:, None], n_back[:, None]
+    front_u = k / nf.clamp_min(1)
+    band_u = (k - nf) / n_band
+    back_u = (k - nf - n_band) / nb.clamp_min(1)
+    e_front = t_near[:, None] + front[:, None] * front_u
+    e_band = lo[:, None] + (hi - lo)[:, None] * band_u
+    e_back = hi[:, None] + back[:, None] * back_u
+    edges = torch.where(k <= nf, e_front, torch.where(k <= nf + n_band, e_band, e_back))
+    # Rays without depth: plain stratified bins.
+    plain = t_near[:, None] + (t_far - t_near)[:, None] * (k / total)
+    edges = torch.where(has[:, None], edges, plain)
+    if stratified and total > 1:
+        # Move each inner edge by up to a quarter of the smaller neighbouring bin.
+        jitter = torch.rand(r, total - 1, device=depth.device, generator=generator) - 0.5
+        gaps = torch.minimum(edges[:, 1:-1] - edges[:, :-2], edges[:, 2:] - edges[:, 1:-1])
+        edges = edges.clone()
+        edges[:, 1:-1] = edges[:, 1:-1] + 0.5 * jitter * gaps
+    edges = torch.cummax(edges, dim=1).values
+    return _dense_samples(edges)
+
+
+class OccupancyGrid(nn.Module):
+    """A binary occupancy grid over the unit cube with fixed-step, empty-space-skipping marching.
+
+    ``density_ema`` holds a running estimate of each cell's density (updated from the field
+    during training); a cell is occupied while ``density * step`` exceeds the threshold.
+    """
+
+    def __init__(self, resolution: int, threshold: float, march_steps: int):
+        super().__init__()
+        self.resolution = resolution
+        self.threshold = threshold
+        self.march_steps = march_steps
+        self.register_buffer("density_ema", torch.full((resolution,) * 3, 1e3))
+        self.register_buffer("occupied", torch.ones((resolution,) * 3, dtype=torch.bool))
+
+    def step_size(self, box: SceneBox) -> float:
+        return box.diagonal / self.march_steps
+
+    @torch.no_grad()
+    def mark_points(self, box: SceneBox, points: Tensor) -> None:
+        """Mark the cells containing world ``points`` (N, 3) as occupied (e.g. from measured depth)."""
+        idx = self._cell_index(box.to_unit(points))
+        ok = idx >= 0
+        self.occupied.view(-1)[idx[ok]] = True
+
+    def _cell_index(self, u: Tensor) -> Tensor:
+        r = self.resolution
+        inside = ((u >= 0) & (u < 1)).all(dim=-1)
+        c = (u.clamp(0, 1 - 1e-6) * r).long()
+        flat = (c[..., 0] * r + c[..., 1]) * r + c[..., 2]
+        return torch.where(inside, flat, torch.full_like(flat, -1))
+
+    @torch.no_grad()
+    def keep_visible(
+        self, box: SceneBox, visible_fn: Callable[[Tensor], Tensor], chunk: int = 65536
+    ) -> None:
+        """Empty every cell whose centre ``visible_fn`` (world points -> bool) says no camera sees."""
+        r = self.resolution
+        occ = self.occupied.view(-1)
+        cells = torch.nonzero(occ).squeeze(-1)
+        for start in range(0, cells.shape[0], chunk):
+            c = cells[start : start + chunk]
+            ijk = torch.stack([c // (r * r), (c // r) % r, c % r], dim=-1).float()
+            seen = visible_fn(box.from_unit((ijk + 0.5) / r))
+            occ[c[~seen]] = False
+
+    @torch.no_grad()
+    def update(
+        self,
+        box: SceneBox,
+        density_fn: DensityFn,
+        decay: float = 0.95,
+        chunk: int = 65536,
+        generator: torch.Generator | None = None,
+        fraction: float = 1.0,
+    ) -> None:
+        """Re-estimate cell densities at a jittered point per cell (a random ``fraction`` of cells)."""
+        r = self.resolution
+        n = r**3
+        device = self.density_ema.device
+        cells = (
+            torch.arange(n, device=device)
+            if fraction >= 1.0
+            else torch.randperm(n, device=device, generator=generator)[: max(1, int(n * fraction))]
+        )
+        ema = self.density_ema.view(-1)
+        for start in range(0, cells.shape[0], chunk):
+            c = cells[start : start + chunk]
+            ijk = torch.stack([c // (r * r), (c // r) % r, c % r], dim=-1).float()
+            u = (ijk + torch.rand(ijk.shape, device=device, generator=generator)) / r
+            sigma = density_fn(box.from_unit(u))
+            ema[c] = torch.maximum(ema[c] * decay, sigma)
+        occ = (self.density_ema * self.step_size(box) > self.threshold).float()
+        # Dilate by one cell: a jittered point can miss a surface that only grazes a cell.
+        occ = torch.nn.functional.max_pool3d(occ[None, None], kernel_size=3, stride=1, padding=1)[
+            0, 0
+        ]
+        self.occupied.copy_(occ > 0)
+
+    @torch.no_grad()
+    def sampling(
+        self,
+        box: SceneBox,
+        origins: Tensor,
+        dirs: Tensor,
+        t_near: Tensor,
+        t_far: Tensor,
+        stratified: bool = False,
+        generator: torch.Generator | None = None,
+        max_samples: int | None = None,
+        density_fn: DensityFn | None = None,
+        early_stop_eps: float = 1e-3,
+        min_weight: float = 1e-4,
+        chunk_steps: int = 48,
+    ) -> RaySamples:
+        """March every ray from ``t_near`` to ``t_far`` in steps of the box diagonal / ``march_steps``
+        (metres along the ray) and keep the samples in occupied cells, at most ``max_samples``
+        per ray. With ``density_fn``, rays stop once their transmittance falls below
+        ``early_stop_eps`` and samples whose weight is below ``min_weight`` are dropped."""
+        step = self.step_size(box)
+        n_rays = origins.shape[0]
+        dev = origins.device
+        dt = step / dirs.norm(dim=-1)  # t-step so that each step is ``step`` metres long
+        n_steps = (
+            int(torch.ceil(((t_far - t_near).clamp_min(0) / dt).max()).item()) if n_rays else 0
+        )
+        offset = (
+            torch.rand(n_rays, device=dev, generator=generator)
+            if stratified
+            else torch.full((n_rays,), 0.5, device=dev)
+        )
+        limit = max_samples if max_samples is not None else n_steps + 1
+        count = torch.zeros(n_rays, dtype=torch.long, device=dev)
+        trans = torch.ones(n_rays, device=dev)
+        kept_ri, kept_t = [], []
+        occupied = self.occupied.view(-1)
+        for s0 in range(0, n_steps, chunk_steps):
+            active = (count < limit) & (t_near + s0 * dt < t_far) & (trans > early_stop_eps)
+            rays = torch.nonzero(active).squeeze(-1)
+            if rays.numel() == 0:
+                break
+            k = torch.arange(s0, min(s0 + chunk_steps, n_steps), device=dev, dtype=torch.float32)
+            t = t_near[rays, None] + (k[None, :] + offset[rays, None]) * dt[rays, None]  # R' x K
+            pts = origins[rays, None, :] + dirs[rays, None, :] * t[..., None]
+            idx = self._cell_index(box.to_unit(pts))
+            keep = (t < t_far[rays, None]) & (idx >= 0)
+            keep &= occupied[idx.clamp_min(0)]
+            if density_fn is not None and bool(keep.any()):
+                sigma_dt = torch.zeros_like(t)
+                sigma_dt[keep] = density_fn(pts[keep]) * step
+                excl = torch.cumsum(sigma_dt, dim=1) - sigma_dt
+                weight = trans[rays, None] * torch.exp(-excl) * (1.0 - torch.exp(-sigma_dt))
+                keep &= weight >= min_weight
+                trans[rays] = trans[rays] * torch.exp(-sigma_dt.sum(dim=1))
+            rank = torch.cumsum(keep.long(), dim=1) + count[rays, None]
+            keep &= rank <= limit
+            count[rays] += keep.sum(dim=1)
+            kept_ri.append(rays[:, None].expand_as(t)[keep])
+            kept_t.append(t[keep])
+        if not kept_ri:
+            empty = torch.zeros(0, device=dev)
+            return RaySamples(empty.long(), empty, empty, n_rays)
+        ri = torch.cat(kept_ri)
+        t = torch.cat(kept_t)
+        order = torch.argsort(
+            ri * (n_steps + 1) + torch.round((t - t_near[ri]) / dt[ri] - offset[ri]).long(),
+            stable=True,
+        )
+        ri, t = ri[order], t[order]
+        half = 0.5 * dt[ri]
+        return RaySamples(ri, t - half, t + half, n_rays)

@@ -1,0 +1,43 @@
+"""Tiny scenes and a tiny, quickly fitted NeRF shared by the NeRF tests."""
+
+from __future__ import annotations
+
+import pytest
+
+from csa_core.data.scene import Scene
+from csa_core.nerf.config import NerfConfig, preset
+
+
+def tiny_config(steps: int = 40) -> NerfConfig:
+    """The fast preset shrunk so a fit takes about a second on one CPU core."""
+    cfg = preset("fast")
+    enc = cfg.field.encoding
+    enc.num_levels, enc.log2_table_size, enc.finest_resolution = 6, 12, 128
+    cfg.optim.steps = steps
+    cfg.optim.rays_per_step = 256
+    cfg.sampler.occupancy_resolution = 32
+    cfg.sampler.march_steps = 192
+    cfg.sampler.uniform_samples = cfg.sampler.importance_samples = 32
+    cfg.render_chunk = 2048
+    return cfg
+
+
+def synthetic_scene(frames: int = 10, size=(32, 24), seed: int = 0) -> Scene:
+    from csa_core.data.synth import generate_scene
+
+    return generate_scene("apartment", seed, frames, size)
+
+
+@pytest.fixture(scope="session")
+def tiny_scene() -> Scene:
+    return synthetic_scene()
+
+
+@pytest.fixture(scope="session")
+def tiny_nerf(tiny_scene):
+    from csa_core.nerf.fit import fit_semantic_nerf
+
+    nerf, _ = fit_semantic_nerf(
+        tiny_scene, "label-nyu40", tiny_config(steps=150), device="cpu", progress=False
+    )
+    return nerf

@@ -1,0 +1,142 @@
+"""Rendering views, novel viewpoints, written outputs and the ``csa nerf`` commands."""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from csa_core.cli.nerf import add_nerf_commands
+from csa_core.data.scene_io import read_scene, write_scene
+from csa_core.errors import CSAInputError
+from csa_core.nerf.render import (
+    interpolate_pose,
+    novel_view_poses,
+    render_views,
+    view_poses,
+    write_rendered_views,
+)
+from tests.nerf.conftest import tiny_config
+
+
+def _rot_z(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def test_novel_pose_is_the_slerp_midpoint_and_mean_translation():
+    a, b = np.eye(4), np.eye(4)
+    a[:3, :3], b[:3, :3] = _rot_z(0.2), _rot_z(1.0)
+    a[:3, 3], b[:3, 3] = [0, 0, 1], [2, 4, 1]
+    mid = interpolate_pose(a, b)
+    np.testing.assert_allclose(mid[:3, :3], _rot_z(0.6), atol=1e-12)
+    np.testing.assert_allclose(mid[:3, 3], [1, 2, 1])
+    np.testing.assert_allclose(mid[3], [0, 0, 0, 1])
+    # Antipodal quaternion signs do not flip the result.
+    c = b.copy()
+    c[:3, :3] = _rot_z(1.0 + 2 * math.pi)
+    np.testing.assert_allclose(interpolate_pose(a, c)[:3, :3], _rot_z(0.6), atol=1e-12)
+    names = novel_view_poses(["0", "10", "20"], [a, b, a])
+    assert [n for n, _ in names] == ["0_10", "10_20"]
+
+
+def test_view_selection(tiny_nerf, tiny_scene):
+    assert [n for n, _ in view_poses(tiny_nerf, "train")] == [
+        f.name for f in tiny_scene.train_frames
+    ]
+    assert len(view_poses(tiny_nerf, "novel")) == len(tiny_scene.train_frames) - 1
+    assert [n for n, _ in view_poses(tiny_nerf, "val", tiny_scene)] == [
+        f.name for f in tiny_scene.val_frames
+    ]
+    with pytest.raises(CSAInputError, match="scene"):
+        view_poses(tiny_nerf, "val")
+    with pytest.raises(CSAInputError):
+        view_poses(tiny_nerf, "sideways", tiny_scene)
+
+
+def test_written_views_read_back_as_a_scene(tiny_nerf, tiny_scene, tmp_path):
+    views = render_views(tiny_nerf, tiny_scene, "val")
+    out = write_rendered_views(views, tmp_path / "render", tiny_scene.intrinsics)
+    back = read_scene(out, labels=["label-nyu40"])
+    assert [f.name for f in back.frames] == [v.name for v in views]
+    for f, v in zip(back.frames, views, strict=True):
+        assert np.array_equal(f.color, v.color)
+        assert np.array_equal(f.labels["label-nyu40"], v.labels)
+        np.testing.assert_allclose(f.depth, np.round(v.depth * 1000) / 1000, atol=1e-6)
+        np.testing.assert_allclose(f.pose, v.pose)
+    raw = cv2.imread(str(out / "depth" / f"{views[0].name}.png"), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint16
+    assert (out / "preview" / f"{views[0].name}.jpg").is_file()
+    with pytest.raises(CSAInputError, match="exists"):
+        write_rendered_views(views, out, tiny_scene.intrinsics)
+
+
+def _cli(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="csa")
+    add_nerf_commands(parser.add_subparsers(dest="group", required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+def test_cli_fit_render_info(tiny_scene, tmp_path, monkeypatch, capsys):
+    scene_dir = write_scene(tiny_scene, tmp_path / "scene")
+    # The CLI uses the named presets; make "fast" tiny for the test.
+    small = tiny_config(steps=10)
+    monkeypatch.setattr(
+        "csa_core.nerf.config.PRESETS",
+        {"fast": lambda: copy.deepcopy(small), "reference": lambda: copy.deepcopy(small)},
+    )
+    ckpt = tmp_path / "scene.safetensors"
+    assert (
+        _cli(
+            [
+                "nerf",
+                "fit",
+                str(scene_dir),
+                "--labels",
+                "label-nyu40",
+                "--out",
+                str(ckpt),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    assert ckpt.is_file()
+    with pytest.raises(CSAInputError, match="exists"):
+        _cli(["nerf", "fit", str(scene_dir), "--out", str(ckpt), "--quiet"])
+    out = tmp_path / "novel"
+    assert (
+        _cli(["nerf", "render", str(ckpt), "--views", "novel", "--out", str(out), "--quiet"]) == 0
+    )
+    names = sorted(p.stem for p in (out / "label-nyu40").iterdir())
+    assert len(names) == tiny_scene.num_train - 1 and all("_" in n for n in names)
+    assert (
+        _cli(
+            [
+                "nerf",
+                "render",
+                str(ckpt),
+                "--scene",
+                str(scene_dir),
+                "--views",
+                "val",
+                "--out",
+                str(tmp_path / "val"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    assert len(list((tmp_path / "val" / "color").iterdir())) == len(tiny_scene.val_frames)
+    capsys.readouterr()
+    assert _cli(["nerf", "info", str(ckpt)]) == 0
+    assert '"scene"' in capsys.readouterr().out
+    with pytest.raises(CSAInputError, match="needs the scene"):
+        _cli(
+            ["nerf", "render", str(ckpt), "--views", "all", "--out", str(tmp_path / "x"), "--quiet"]
+        )
