@@ -21,6 +21,7 @@ from csa_core.data.synth import (
     synthesize,
 )
 from csa_core.data.synth.boxes import BoxSet, any_hit, closest_hit, face_hit
+from csa_core.data.synth.families import BASE_LOOKS
 from csa_core.data.synth.floorplan import CELL_M, CLEARANCE_M
 from csa_core.data.synth.generate import room_and_path
 from csa_core.data.synth.textures import MaterialTable, albedo, has_look
@@ -106,7 +107,9 @@ def test_reprojected_depth_sees_the_same_labels_and_colours(steady_scenes, famil
         ca = scene.frames[i].color.reshape(-1, 3)[idx].astype(int)
         cb = scene.frames[j].color[v, u].astype(int)
         diff = np.abs(ca - cb).max(axis=1)
-        assert np.median(diff) <= 1 and diff.mean() < 4
+        # Nearest-pixel sampling differs on fine textures (wood grain, chair legs), so only
+        # the median is tight here; the check below compares the same surface point.
+        assert np.median(diff) <= 1 and diff.mean() < 5
         # Where both views sample (nearly) the same point, colour is the same up to rounding.
         assert centred.sum() > 150
         assert np.mean(diff[centred] <= 1) > 0.85
@@ -198,17 +201,59 @@ def test_every_part_has_a_look_in_its_family(family):
 
 
 def test_families_differ_in_appearance_of_the_same_classes():
-    means: dict[str, dict[int, np.ndarray]] = {}
+    """Wall and floor colours, averaged over rooms, shift measurably between families."""
+    means: dict[str, np.ndarray] = {}
     for family in family_names():
         pix: dict[int, list[np.ndarray]] = {}
-        for seed in (0, 1):
-            for f in generate_scene(family, seed, 8, (64, 48)).frames:
+        for seed in (0, 1, 2):
+            for f in generate_scene(family, seed, 6, (64, 48)).frames:
                 for c in (class_id("wall"), class_id("floor")):
                     pix.setdefault(c, []).append(f.color[f.labels[NYU] == c].astype(float))
-        means[family] = {c: np.concatenate(v).mean(axis=0) for c, v in pix.items()}
+        means[family] = np.concatenate([np.concatenate(pix[c]).mean(axis=0) for c in sorted(pix)])
     for a, b in itertools.combinations(family_names(), 2):
-        for c in (class_id("wall"), class_id("floor")):
-            assert np.linalg.norm(means[a][c] - means[b][c]) > 25, (a, b, c)
+        assert np.linalg.norm(means[a] - means[b]) > 25, (a, b)
+
+
+CORE = {"door", "window", "chair", "table", "sofa", "cabinet", "picture", "lamp", "box", "curtain"}
+
+
+def test_families_share_a_core_of_classes_and_one_look_per_class():
+    """Every family uses the same looks, and its rooms hold the same core classes (plus a few
+    rarer family-specific ones), so a network trained on one family knows most classes of another."""
+    seen: dict[str, set[str]] = {}
+    for family in family_names():
+        assert FAMILIES[family].looks == BASE_LOOKS
+        labels: set[str] = set()
+        for seed in range(6):
+            room, _ = room_and_path(FAMILIES[family], seed, 2)
+            labels |= {p.label for g in room.groups for p in g.group.parts}
+        assert CORE <= labels, (family, CORE - labels)
+        assert labels & {"bookshelf", "shelves"} and labels & {"bed", "desk"}
+        seen[family] = labels
+    for a, b in itertools.permutations(family_names(), 2):
+        assert len(seen[a] & seen[b]) >= 0.75 * len(seen[a]), (a, b)
+
+
+def test_each_room_draws_its_own_colours_around_the_family_shift():
+    """Walls of different rooms of one family differ (no single colour per class), but the
+    spread of one family overlaps the others: walls stay light and nearly neutral everywhere."""
+    walls: dict[str, np.ndarray] = {}
+    for family in family_names():
+        fam = FAMILIES[family]
+        cols = []
+        for seed in range(40):
+            rng = np.random.default_rng(seed)
+            table = MaterialTable.for_room(fam.appearance, rng)
+            table.add(fam.looks["wall"], rng, shell=True)
+            cols.append(table.color1[0] ** (1 / 2.2) * 255)
+        walls[family] = np.array(cols)
+        assert walls[family].std(axis=0).mean() > 4
+        assert walls[family].min() > 130
+        sat = (walls[family].max(axis=1) - walls[family].min(axis=1)) / walls[family].max(axis=1)
+        assert sat.mean() < 0.15
+    for a, b in itertools.combinations(family_names(), 2):
+        gap = np.linalg.norm(walls[a].mean(axis=0) - walls[b].mean(axis=0))
+        assert gap < 3 * max(walls[a].std(axis=0).mean(), walls[b].std(axis=0).mean()), (a, b)
 
 
 # ---- building blocks ----------------------------------------------------------------------

@@ -1,14 +1,17 @@
 """Room families: the statistics one kind of room is drawn from.
 
-A family fixes room sizes, which furniture appears and how often, what each class looks
-like (palette and texture), the lighting and the camera. Geometry per class is shared by
-all families (a table is a table everywhere); appearance, layout and light shift between
-them, which is the covariate shift continual adaptation has to cope with.
+All families share one catalogue of furniture and one appearance distribution per class
+(``BASE_LOOKS``): a sofa is built and coloured from the same ranges everywhere. A family
+shifts that shared distribution (hue, saturation, brightness, tint, texture mixture), uses
+its own room sizes, furniture counts, lighting and camera, and adds a few rarer pieces of
+its own. Each room then draws its own colours around the family's shift, so no class has
+one fixed colour. The result is a moderate covariate shift between families, like the shift
+between real scenes that continual adaptation has to cope with.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from csa_core.errors import CSAInputError
 
@@ -17,10 +20,15 @@ RGB = tuple[int, int, int]
 
 @dataclass(frozen=True)
 class Look:
-    """Appearance of one (class, role): colour choices in sRGB 0..255, texture patterns to
-    pick from, the pattern's scale in metres, how far the second colour departs from the
-    first (``contrast``) or an explicit ``secondary`` palette, and self-emission (windows,
-    screens, lamp shades) as a fraction of the colour."""
+    """Appearance distribution of one (class, role).
+
+    ``colors``: base colours in sRGB 0..255, one is picked per instance; ``patterns`` with
+    optional ``pattern_weights`` and per-pattern ``scales`` (metres; ``scale`` when empty);
+    ``contrast``: how far the second colour departs from the first, or an explicit
+    ``secondary`` palette; ``emission``: self-emission (windows, screens, shades) as a
+    fraction of the colour. Each instance jitters hue (degrees), log saturation and log
+    brightness with the ``*_jitter`` standard deviations.
+    """
 
     colors: tuple[RGB, ...]
     patterns: tuple[str, ...] = ("noise",)
@@ -28,6 +36,34 @@ class Look:
     contrast: float = 0.15
     secondary: tuple[RGB, ...] = ()
     emission: float = 0.0
+    pattern_weights: tuple[float, ...] = ()
+    scales: tuple[float, ...] = ()
+    hue_jitter: float = 6.0
+    saturation_jitter: float = 0.12
+    value_jitter: float = 0.08
+
+
+@dataclass(frozen=True)
+class Appearance:
+    """A family's shift of the shared looks and the spread of one room around it.
+
+    Colours are rotated by ``hue_deg``, their saturation and brightness (HSV value) scaled by
+    ``saturation`` and ``value``, then multiplied by ``tint`` (RGB). ``shell_tint`` further
+    tints walls, floor and ceiling (paint and material choices). Each room draws its own
+    offset: hue (std ``room_hue_deg``), log saturation and log brightness (stds
+    ``room_saturation``, ``room_value``). ``pattern_bias`` multiplies the weight of named
+    texture patterns wherever a look offers them.
+    """
+
+    hue_deg: float = 0.0
+    saturation: float = 1.0
+    value: float = 1.0
+    tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    shell_tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    room_hue_deg: float = 15.0
+    room_saturation: float = 0.15
+    room_value: float = 0.08
+    pattern_bias: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -37,6 +73,7 @@ class Lighting:
     ``placement``: "ceiling" (lights spread under the ceiling) or "window" (a key light in
     front of a window plus an unshadowed ceiling fill). ``intensity`` is the range a light's
     power is drawn from (linear units, shared among ``count`` ceiling lights).
+    ``color_jitter`` is the std of a room's log colour change per channel (bulbs differ).
     """
 
     color: tuple[float, float, float]
@@ -48,13 +85,14 @@ class Lighting:
     shadow_lights: int = 1  # how many of the lights cast shadows (shadow rays are the main cost)
     fill_color: tuple[float, float, float] = (1.0, 1.0, 1.0)
     fill_intensity: float = 0.0
+    color_jitter: float = 0.0
 
 
 @dataclass(frozen=True)
 class RoomFamily:
     """Everything that differs between families. ``furniture``: (group kind, min, max count)
     placed in that order while there is room; ``looks``: keyed ``"class.role"``, ``"*.role"``
-    or ``"class"`` (looked up in that order)."""
+    or ``"class"`` (looked up in that order); ``appearance``: the family's shift of them."""
 
     name: str
     description: str
@@ -72,191 +110,217 @@ class RoomFamily:
     exposure: float = 1.0
     exposure_jitter: float = 0.0  # std of log exposure across frames (auto-exposure drift)
     sensor_noise: float = 0.0  # std of additive colour noise, in [0, 1] units
+    appearance: Appearance = field(default_factory=Appearance)
 
 
-_GLASS = Look(((205, 222, 240),), ("noise",), 0.5, 0.05, emission=0.7)
-_SCREEN = Look(((18, 20, 26),), ("noise",), 0.5, 0.05, emission=0.05)
-_SHADE = Look(((245, 232, 200),), ("fabric",), 0.05, 0.1, emission=0.45)
-_COMMON: dict[str, Look] = {
-    "*.glass": _GLASS,
-    "*.screen": _SCREEN,
-    "*.shade": _SHADE,
-    "mirror.glass": Look(((190, 200, 208),), ("noise",), 0.4, 0.05, emission=0.35),
+_WOOD = ((152, 104, 64), (124, 84, 52), (176, 130, 84), (104, 72, 46))
+_METAL = ((140, 144, 150), (62, 64, 68), (36, 36, 38), (196, 198, 200))
+_PAINTED = ((232, 230, 222), (206, 208, 210), (44, 46, 50), (64, 96, 80), (60, 72, 104))
+_FABRIC = ((122, 92, 72), (92, 112, 82), (152, 64, 54), (170, 150, 120), (76, 80, 88), (150, 150, 156), (48, 92, 128), (178, 120, 52))
+_WOOD_NOISE = ("wood", "noise")
+
+# One appearance distribution per (class, role), shared by all families.
+BASE_LOOKS: dict[str, Look] = {
+    "*.glass": Look(((205, 222, 240),), ("noise",), 0.5, 0.05, emission=0.7, hue_jitter=3.0),
+    "*.screen": Look(((18, 20, 26),), ("noise",), 0.5, 0.05, emission=0.05),
+    "*.shade": Look(((245, 232, 200), (236, 236, 232)), ("fabric",), 0.05, 0.1, emission=0.45),
+    "*.frame": Look(_WOOD + _METAL, _WOOD_NOISE, 0.03, 0.2, scales=(0.02, 0.1)),
+    "wall": Look(
+        ((236, 232, 224), (228, 228, 226), (232, 226, 214), (218, 222, 226), (240, 240, 236), (226, 222, 214), (218, 224, 216)),
+        ("noise", "stripes", "brick"),
+        0.3,
+        0.06,
+        pattern_weights=(0.7, 0.15, 0.15),
+        scales=(0.4, 0.12, 0.26),
+        hue_jitter=8.0,
+        saturation_jitter=0.3,
+        value_jitter=0.06,
+    ),
+    "floor": Look(
+        ((168, 122, 80), (142, 98, 62), (186, 146, 100), (120, 116, 110), (96, 100, 108), (150, 146, 138), (110, 84, 64)),
+        ("planks", "tiles", "noise"),
+        0.3,
+        0.25,
+        scales=(0.14, 0.5, 0.6),
+        value_jitter=0.12,
+    ),
+    "ceiling": Look(((246, 241, 232), (236, 236, 234), (228, 228, 226)), ("noise", "tiles"), 0.5, 0.04, pattern_weights=(0.8, 0.2), scales=(0.5, 0.6)),
+    "table.top": Look(_WOOD + ((232, 232, 226), (196, 198, 200), (58, 56, 54)), _WOOD_NOISE, 0.03, 0.3, scales=(0.025, 0.2)),
+    "desk.top": Look(_WOOD + ((232, 232, 226), (204, 204, 202), (58, 56, 54)), _WOOD_NOISE, 0.03, 0.25, scales=(0.025, 0.2)),
+    "desk": Look(_WOOD + ((200, 200, 198), (140, 145, 150)), _WOOD_NOISE, 0.03, 0.2, scales=(0.025, 0.2)),
+    "chair": Look(
+        _WOOD[:2] + ((40, 40, 46), (34, 48, 84), (66, 66, 72), (200, 70, 56), (62, 132, 186), (226, 190, 60)),
+        ("wood", "fabric", "noise"),
+        0.03,
+        0.15,
+        scales=(0.02, 0.015, 0.2),
+    ),
+    "bed.soft": Look(((232, 226, 214), (204, 214, 232), (236, 220, 206), (150, 150, 156), (70, 80, 100)), ("fabric",), 0.04, 0.1),
+    "pillow": Look(((224, 204, 182), (184, 64, 62), (92, 122, 164), (214, 180, 90), (236, 236, 230), (50, 50, 52)), ("fabric", "stripes"), 0.04, 0.15, pattern_weights=(0.8, 0.2)),
+    "sofa": Look(_FABRIC, ("fabric",), 0.03, 0.15),
+    "bookshelf": Look(_WOOD + ((220, 218, 210), (150, 152, 156), (40, 40, 42)), _WOOD_NOISE, 0.03, 0.2, scales=(0.02, 0.2)),
+    "books": Look(((160, 52, 42), (44, 84, 124), (200, 170, 90), (40, 70, 140), (230, 230, 226)), ("spines",), 0.035, 0.4, secondary=((60, 110, 70), (220, 210, 190), (40, 40, 44))),
+    "cabinet": Look(_WOOD + _PAINTED, _WOOD_NOISE, 0.03, 0.15, pattern_weights=(0.45, 0.55), scales=(0.025, 0.25)),
+    "dresser": Look(_WOOD + _PAINTED[:2], _WOOD_NOISE, 0.03, 0.2, scales=(0.025, 0.25)),
+    "night stand": Look(_WOOD + _PAINTED[:3], _WOOD_NOISE, 0.03, 0.2, scales=(0.025, 0.25)),
+    "shelves": Look(_METAL + _WOOD[:2], ("noise", "wood"), 0.1, 0.1, scales=(0.1, 0.05)),
+    "box": Look(((176, 136, 96), (200, 190, 170), (160, 120, 80), (52, 92, 162), (60, 130, 70)), ("noise",), 0.08, 0.15),
+    "door": Look(_WOOD[:2] + ((232, 228, 218), (162, 167, 177), (92, 97, 102)), _WOOD_NOISE, 0.03, 0.15, scales=(0.03, 0.2)),
+    "door.frame": Look(((236, 232, 222), (150, 154, 160), (120, 84, 54), (48, 48, 50)), ("noise",), 0.3, 0.05),
+    "window.frame": Look(((238, 236, 230), (160, 164, 170), (40, 40, 42)), ("noise",), 0.3, 0.04),
+    "curtain": Look(((196, 154, 112), (134, 44, 54), (222, 212, 190), (120, 140, 110), (80, 90, 120), (180, 180, 176)), ("fabric", "stripes"), 0.08, 0.15, pattern_weights=(0.75, 0.25)),
+    "blinds": Look(((222, 222, 216), (190, 196, 204), (170, 150, 120)), ("hstripes",), 0.025, 0.25),
+    "picture.canvas": Look(
+        ((200, 90, 60), (70, 110, 150), (220, 180, 80), (60, 160, 120), (230, 230, 230), (30, 30, 30)),
+        ("painting", "stripes", "tiles"),
+        0.15,
+        0.6,
+        secondary=((40, 60, 40), (230, 220, 200), (120, 40, 60), (30, 40, 60), (250, 250, 250)),
+        pattern_weights=(0.7, 0.15, 0.15),
+        scales=(0.15, 0.2, 0.2),
+        hue_jitter=30.0,
+    ),
+    "picture.frame": Look(((170, 140, 70), (90, 60, 40), (40, 40, 42), (220, 220, 218)), _WOOD_NOISE, 0.02, 0.15, scales=(0.01, 0.2)),
+    "floor mat": Look(((152, 52, 52), (182, 142, 92), (90, 100, 140), (60, 60, 62), (200, 190, 160)), ("tiles", "stripes", "noise"), 0.15, 0.4, hue_jitter=15.0),
+    "lamp.frame": Look(((172, 142, 82), (40, 40, 44), (200, 200, 204)), ("noise",), 0.1, 0.1),
+    "television.frame": Look(((34, 34, 36), (60, 60, 64)), ("noise",), 0.2, 0.05),
+    "mirror.frame": Look(((170, 140, 70), (40, 40, 42), (220, 220, 218)), ("wood", "noise"), 0.02, 0.2, scales=(0.01, 0.2)),
+    "mirror.glass": Look(((176, 186, 196),), ("noise",), 0.15, 0.3, emission=0.25, hue_jitter=3.0),
+    "whiteboard": Look(((246, 246, 246),), ("noise",), 0.5, 0.02, emission=0.05, saturation_jitter=0.0),
+    "counter": Look(((204, 204, 198), (40, 40, 42), (150, 120, 90), (120, 120, 116)), ("noise", "wood"), 0.15, 0.3, scales=(0.15, 0.03)),
+    "refrigerator": Look(((196, 196, 200), (220, 220, 218), (60, 60, 64)), ("noise",), 0.3, 0.05),
 }
+
 
 APARTMENT = RoomFamily(
     name="apartment",
-    description="warm, lived-in living rooms and bedrooms: wood, fabrics, pastel walls, warm dim ceiling light",
-    width_m=(4.2, 5.6),
-    depth_m=(3.6, 5.0),
-    height_m=(2.5, 2.7),
+    description="lived-in living rooms and bedrooms: warm tints, wooden floors, curtains, warm dim ceiling light",
+    width_m=(4.2, 5.8),
+    depth_m=(3.6, 5.2),
+    height_m=(2.45, 2.75),
     furniture=(
         ("door", 1, 1),
-        ("bed", 0, 1),
         ("sofa", 1, 1),
-        ("bookshelf", 1, 2),
+        ("dining", 1, 1),
+        ("bed", 0, 1),
+        ("bookshelf", 1, 1),
         ("cabinet", 1, 1),
-        ("dresser", 0, 1),
         ("window_curtains", 1, 2),
-        ("dining", 0, 1),
+        ("window_blinds", 0, 1),
+        ("desk", 0, 1),
         ("floor_lamp", 0, 1),
+        ("boxes", 0, 1),
         ("picture", 1, 3),
+        ("dresser", 0, 1),
         ("mirror", 0, 1),
     ),
-    looks={
-        **_COMMON,
-        "wall": Look(((236, 226, 206), (212, 220, 196), (242, 216, 196), (226, 214, 226)), ("noise", "stripes"), 0.12, 0.06),
-        "floor": Look(((168, 122, 80), (142, 98, 62), (186, 146, 100)), ("planks",), 0.14, 0.3),
-        "ceiling": Look(((246, 241, 232),), ("noise",), 0.5, 0.03),
-        "*.frame": Look(((122, 86, 56), (96, 66, 44)), ("wood",), 0.02, 0.25),
-        "table.top": Look(((152, 102, 62), (124, 82, 52), (170, 122, 78)), ("wood",), 0.025, 0.3),
-        "chair": Look(((140, 92, 56), (110, 74, 48)), ("wood",), 0.02, 0.25),
-        "bed.soft": Look(((232, 226, 214), (204, 214, 232), (236, 220, 206)), ("fabric",), 0.04, 0.08),
-        "pillow": Look(((224, 204, 182), (184, 64, 62), (92, 122, 164), (214, 180, 90)), ("fabric",), 0.03, 0.1),
-        "sofa": Look(((122, 92, 72), (92, 112, 82), (152, 64, 54), (170, 150, 120)), ("fabric",), 0.03, 0.12),
-        "bookshelf": Look(((112, 76, 46), (150, 104, 64)), ("wood",), 0.02, 0.25),
-        "books": Look(((160, 52, 42), (44, 84, 124), (200, 170, 90)), ("spines",), 0.035, 0.4, secondary=((60, 110, 70), (220, 210, 190))),
-        "cabinet": Look(((162, 116, 72), (222, 216, 204)), ("wood",), 0.025, 0.2),
-        "dresser": Look(((150, 104, 62), (176, 130, 84)), ("wood",), 0.025, 0.25),
-        "night stand": Look(((150, 104, 62), (120, 82, 50)), ("wood",), 0.025, 0.25),
-        "door": Look(((152, 106, 66), (232, 228, 218)), ("wood",), 0.03, 0.2),
-        "door.frame": Look(((236, 232, 222),), ("noise",), 0.3, 0.05),
-        "window.frame": Look(((238, 236, 230),), ("noise",), 0.3, 0.04),
-        "curtain": Look(((196, 154, 112), (134, 44, 54), (222, 212, 190), (120, 140, 110)), ("fabric", "stripes"), 0.08, 0.15),
-        "picture.canvas": Look(((200, 90, 60), (70, 110, 150), (220, 180, 80)), ("painting",), 0.15, 0.6, secondary=((40, 60, 40), (230, 220, 200), (120, 40, 60))),
-        "picture.frame": Look(((170, 140, 70), (90, 60, 40)), ("wood",), 0.01, 0.2),
-        "floor mat": Look(((152, 52, 52), (182, 142, 92), (90, 100, 140)), ("tiles", "stripes"), 0.12, 0.35),
-        "lamp.frame": Look(((172, 142, 82),), ("noise",), 0.1, 0.1),
-        "box": Look(((176, 136, 96), (200, 190, 170)), ("noise",), 0.08, 0.15),
-        "television.frame": Look(((34, 34, 36),), ("noise",), 0.2, 0.05),
-        "mirror.frame": Look(((170, 140, 70),), ("wood",), 0.01, 0.2),
-    },
-    lighting=Lighting(color=(1.0, 0.8, 0.58), intensity=(0.9, 1.2), count=(1, 2), ambient=(0.2, 0.17, 0.13)),
-    camera_height_m=(1.45, 1.65),
+    looks=dict(BASE_LOOKS),
+    lighting=Lighting(color=(1.0, 0.93, 0.85), intensity=(0.85, 1.3), count=(1, 2), ambient=(0.2, 0.19, 0.17), color_jitter=0.1),
+    camera_height_m=(1.4, 1.65),
     hfov_deg=62.0,
     step_m=0.055,
     exposure=1.0,
     exposure_jitter=0.08,
     sensor_noise=0.006,
+    appearance=Appearance(
+        hue_deg=4.0,
+        saturation=1.05,
+        value=0.97,
+        tint=(1.01, 1.0, 0.98),
+        shell_tint=(1.01, 1.0, 0.98),
+        pattern_bias=(("planks", 4.0), ("wood", 2.0), ("stripes", 1.5), ("brick", 0.3), ("fabric", 1.5)),
+    ),
 )
 
 OFFICE = RoomFamily(
     name="office",
-    description="bright open offices: desks and chairs in rows, grey carpet tiles, white walls, cool even light",
-    width_m=(5.5, 7.5),
-    depth_m=(4.5, 6.0),
-    height_m=(2.7, 3.0),
+    description="bright offices: desks in rows, carpet tiles, cool white walls and paint, cool even light",
+    width_m=(5.2, 7.2),
+    depth_m=(4.4, 6.0),
+    height_m=(2.6, 3.0),
     furniture=(
         ("door", 1, 1),
-        ("desk", 2, 4),
-        ("bookshelf", 1, 2),
-        ("tall_cabinet", 1, 2),
-        ("window_blinds", 1, 3),
-        ("shelving", 0, 1),
+        ("desk", 2, 3),
+        ("window_blinds", 1, 2),
+        ("window_curtains", 0, 1),
+        ("bookshelf", 1, 1),
+        ("cabinet", 1, 1),
+        ("sofa", 0, 1),
         ("dining", 0, 1),
-        ("cabinet", 0, 1),
-        ("boxes", 1, 2),
-        ("whiteboard", 1, 1),
-        ("picture", 0, 2),
+        ("tall_cabinet", 0, 1),
+        ("boxes", 1, 1),
+        ("floor_lamp", 0, 1),
+        ("picture", 1, 2),
+        ("whiteboard", 0, 1),
+        ("shelving", 0, 1),
         ("wall_tv", 0, 1),
     ),
-    looks={
-        **_COMMON,
-        "wall": Look(((226, 229, 231), (202, 207, 212), (186, 202, 216)), ("noise",), 0.4, 0.04),
-        "floor": Look(((92, 97, 108), (72, 82, 96), (110, 110, 104)), ("tiles",), 0.5, 0.18),
-        "ceiling": Look(((236, 236, 234),), ("tiles",), 0.6, 0.06),
-        "*.frame": Look(((132, 136, 142), (60, 62, 66)), ("noise",), 0.1, 0.08),
-        "desk.top": Look(((232, 232, 226), (204, 204, 202), (216, 192, 152)), ("noise",), 0.2, 0.06),
-        "desk": Look(((140, 145, 150), (200, 200, 198)), ("noise",), 0.2, 0.06),
-        "table.top": Look(((232, 232, 226), (196, 198, 200)), ("noise",), 0.2, 0.06),
-        "chair": Look(((36, 36, 42), (32, 46, 82), (64, 64, 70)), ("fabric",), 0.015, 0.15),
-        "chair.frame": Look(((58, 58, 62), (160, 162, 166)), ("noise",), 0.1, 0.08),
-        "bookshelf": Look(((200, 200, 200), (150, 152, 156)), ("noise",), 0.2, 0.05),
-        "books": Look(((40, 70, 140), (230, 230, 226), (180, 40, 40)), ("spines",), 0.03, 0.3, secondary=((40, 40, 44), (200, 180, 60))),
-        "cabinet": Look(((162, 166, 172), (206, 208, 210)), ("noise",), 0.2, 0.05),
-        "shelves": Look(((140, 142, 146),), ("noise",), 0.1, 0.08),
-        "box": Look(((172, 132, 92), (184, 150, 110)), ("noise",), 0.08, 0.15),
-        "whiteboard": Look(((246, 246, 246),), ("noise",), 0.5, 0.02, emission=0.05),
-        "blinds": Look(((222, 222, 216), (190, 196, 204)), ("hstripes",), 0.025, 0.25),
-        "door": Look(((162, 167, 177), (122, 92, 62)), ("noise",), 0.2, 0.05),
-        "door.frame": Look(((150, 154, 160),), ("noise",), 0.2, 0.05),
-        "window.frame": Look(((160, 164, 170),), ("noise",), 0.2, 0.04),
-        "picture.canvas": Look(((40, 100, 170), (230, 230, 230), (60, 160, 120)), ("painting", "stripes"), 0.2, 0.6, secondary=((30, 40, 60), (200, 210, 220))),
-        "picture.frame": Look(((40, 40, 42), (190, 190, 190)), ("noise",), 0.2, 0.05),
-        "lamp.frame": Look(((40, 40, 44),), ("noise",), 0.1, 0.05),
-        "television.frame": Look(((30, 30, 32),), ("noise",), 0.2, 0.05),
-    },
-    lighting=Lighting(color=(0.88, 0.95, 1.0), intensity=(0.75, 0.95), count=(2, 4), ambient=(0.3, 0.32, 0.35)),
-    camera_height_m=(1.2, 1.4),
+    looks=dict(BASE_LOOKS),
+    lighting=Lighting(color=(0.96, 0.98, 1.0), intensity=(0.75, 1.0), count=(2, 4), ambient=(0.22, 0.23, 0.24), color_jitter=0.1),
+    camera_height_m=(1.25, 1.5),
     hfov_deg=66.0,
     step_m=0.065,
     exposure=1.0,
     exposure_jitter=0.04,
     sensor_noise=0.004,
+    appearance=Appearance(
+        hue_deg=-6.0,
+        saturation=0.9,
+        value=1.0,
+        tint=(0.98, 1.0, 1.02),
+        shell_tint=(0.97, 0.99, 1.03),
+        pattern_bias=(("tiles", 4.0), ("noise", 2.0), ("wood", 0.6), ("stripes", 0.4), ("brick", 0.2)),
+    ),
 )
 
 STUDIO = RoomFamily(
     name="studio",
-    description="large industrial lofts: brick or concrete, dark ceilings, saturated furniture, side light from a window",
-    width_m=(6.0, 8.0),
-    depth_m=(5.0, 6.5),
-    height_m=(3.0, 3.4),
+    description="large lofts: painted brick, concrete floors, saturated furniture, side light from a window",
+    width_m=(5.2, 7.2),
+    depth_m=(4.4, 6.0),
+    height_m=(2.8, 3.2),
     furniture=(
         ("door", 1, 1),
-        ("kitchen", 1, 1),
         ("sofa", 1, 1),
-        ("shelving", 1, 2),
-        ("window", 1, 3),
-        ("bed", 0, 1),
+        ("window_curtains", 1, 1),
+        ("window", 0, 2),
         ("dining", 1, 1),
-        ("boxes", 1, 3),
+        ("cabinet", 1, 1),
+        ("bed", 0, 1),
+        ("bookshelf", 0, 1),
+        ("shelving", 1, 1),
+        ("boxes", 1, 2),
         ("floor_lamp", 0, 1),
-        ("cabinet", 0, 1),
+        ("desk", 0, 1),
         ("picture", 1, 3),
+        ("kitchen", 0, 1),
     ),
-    looks={
-        **_COMMON,
-        "wall": Look(((152, 72, 52), (172, 172, 166), (124, 58, 44), (96, 98, 104)), ("brick", "noise"), 0.4, 0.3),
-        "floor": Look(((132, 132, 126), (104, 102, 96), (70, 52, 40)), ("noise",), 0.6, 0.35),
-        "ceiling": Look(((72, 72, 78), (110, 110, 112)), ("noise",), 0.8, 0.2),
-        "*.frame": Look(((34, 34, 36), (70, 72, 76)), ("noise",), 0.1, 0.1),
-        "table.top": Look(((82, 56, 36), (236, 236, 232), (40, 40, 40)), ("wood", "noise"), 0.03, 0.35),
-        "chair": Look(((222, 62, 52), (240, 200, 52), (62, 142, 202), (30, 30, 30)), ("noise",), 0.2, 0.06),
-        "sofa": Look(((202, 122, 32), (32, 122, 132), (182, 42, 42), (90, 60, 110)), ("fabric",), 0.02, 0.2),
-        "pillow": Look(((240, 230, 60), (230, 90, 140), (40, 40, 40), (250, 250, 250)), ("fabric", "stripes"), 0.05, 0.3),
-        "bed.soft": Look(((150, 150, 156), (60, 70, 90)), ("fabric",), 0.03, 0.15),
-        "counter": Look(((204, 204, 198), (40, 40, 42), (150, 120, 90)), ("noise",), 0.15, 0.3),
-        "cabinet": Look(((42, 82, 62), (42, 52, 82), (30, 30, 32), (190, 70, 40)), ("noise",), 0.3, 0.08),
-        "refrigerator": Look(((192, 192, 198), (200, 222, 212), (180, 40, 40)), ("noise",), 0.3, 0.06),
-        "shelves": Look(((40, 40, 42), (150, 100, 60)), ("noise", "wood"), 0.05, 0.15),
-        "box": Look(((160, 120, 80), (52, 92, 162), (60, 130, 70)), ("noise",), 0.1, 0.2),
-        "night stand": Look(((30, 30, 32), (180, 60, 40)), ("noise",), 0.2, 0.1),
-        "door": Look(((92, 97, 102), (40, 40, 42)), ("noise",), 0.2, 0.12),
-        "door.frame": Look(((36, 36, 38),), ("noise",), 0.2, 0.05),
-        "window.frame": Look(((30, 30, 32),), ("noise",), 0.2, 0.05),
-        "window.glass": Look(((220, 232, 244),), ("noise",), 0.5, 0.05, emission=0.9),
-        "picture.canvas": Look(((230, 40, 40), (30, 30, 30), (250, 200, 0), (0, 90, 180)), ("painting", "tiles"), 0.2, 0.8, secondary=((250, 250, 250), (20, 20, 20))),
-        "picture.frame": Look(((20, 20, 20), (240, 240, 240)), ("noise",), 0.2, 0.05),
-        "floor mat": Look(((200, 60, 40), (40, 40, 40), (220, 200, 150)), ("tiles", "noise"), 0.2, 0.5),
-        "lamp.frame": Look(((24, 24, 24),), ("noise",), 0.1, 0.05),
-        "television.frame": Look(((24, 24, 26),), ("noise",), 0.2, 0.05),
-    },
+    looks=dict(BASE_LOOKS),
     lighting=Lighting(
-        color=(1.0, 0.97, 0.9),
-        intensity=(2.2, 2.8),
+        color=(1.0, 0.96, 0.9),
+        intensity=(1.3, 1.8),
         count=(1, 1),
-        ambient=(0.1, 0.1, 0.12),
+        ambient=(0.2, 0.2, 0.21),
         placement="window",
-        falloff_m=2.5,
-        fill_color=(0.75, 0.82, 1.0),
-        fill_intensity=0.35,
+        falloff_m=2.8,
+        fill_color=(0.8, 0.86, 1.0),
+        fill_intensity=0.7,
+        color_jitter=0.1,
     ),
-    camera_height_m=(0.9, 1.2),
-    hfov_deg=69.0,
-    step_m=0.075,
-    exposure=1.25,
-    exposure_jitter=0.15,
-    sensor_noise=0.012,
+    camera_height_m=(1.25, 1.5),
+    hfov_deg=68.0,
+    step_m=0.07,
+    exposure=1.2,
+    exposure_jitter=0.12,
+    sensor_noise=0.01,
+    appearance=Appearance(
+        hue_deg=0.0,
+        saturation=1.05,
+        value=0.9,
+        tint=(1.0, 0.99, 0.98),
+        shell_tint=(0.96, 0.96, 0.97),
+        pattern_bias=(("brick", 5.0), ("noise", 2.0), ("tiles", 0.5), ("planks", 0.5)),
+    ),
 )
 
 FAMILIES: dict[str, RoomFamily] = {f.name: f for f in (APARTMENT, OFFICE, STUDIO)}

@@ -37,7 +37,7 @@ def _push_out(pos: np.ndarray, room: Room, blockers: list[tuple[np.ndarray, np.n
 def place_lights(family: RoomFamily, room: Room, rng: np.random.Generator) -> list[Light]:
     """Lights of a family in a room: ceiling lights, or a window key light plus a ceiling fill."""
     style = family.lighting
-    color = np.asarray(style.color)
+    color = np.asarray(style.color) * np.exp(rng.normal(0.0, style.color_jitter, 3))
     blockers = [g.aabb() for g in room.groups]
     lights: list[Light] = []
     z = room.height - 0.25

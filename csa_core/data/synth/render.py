@@ -18,7 +18,7 @@ from csa_core.data.synth.boxes import BoxSet, closest_hit, face_hit, interior_ex
 from csa_core.data.synth.families import RoomFamily
 from csa_core.data.synth.layout import Room
 from csa_core.data.synth.lighting import Light, irradiance
-from csa_core.data.synth.textures import MaterialTable, albedo, find_look
+from csa_core.data.synth.textures import SHELL_CLASSES, MaterialTable, albedo, find_look
 
 TILE_PX = 40
 NEAR_M = 0.02
@@ -45,8 +45,8 @@ class RoomModel:
 
 def build_model(room: Room, family: RoomFamily, lights: list[Light], rng: np.random.Generator) -> RoomModel:
     """Flatten a room's groups into boxes and draw a material for every (group, class, role, instance)."""
-    table = MaterialTable.empty()
-    shell = tuple(table.add(find_look(family, name, "body"), rng) for name in ("wall", "floor", "ceiling"))
+    table = MaterialTable.for_room(family.appearance, rng)
+    shell = tuple(table.add(find_look(family, name, "body"), rng, shell=True) for name in SHELL_CLASSES)
     centers, halves, yaws, labels, mats, casts = [], [], [], [], [], []
     for gi, g in enumerate(room.groups):
         keys: dict[tuple, int] = {}

@@ -9,11 +9,12 @@ every camera sees the same albedo at the same point. On each face two tangent co
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import colorsys
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from csa_core.data.synth.families import Look, RoomFamily
+from csa_core.data.synth.families import Appearance, Look, RoomFamily
 from csa_core.data.synth.noise import fbm3, hash01
 
 PATTERNS = ("noise", "wood", "planks", "tiles", "stripes", "hstripes", "brick", "spines", "fabric", "painting")
@@ -38,9 +39,25 @@ def has_look(family: RoomFamily, label: str, role: str) -> bool:
     return find_look(family, label, role) is not _DEFAULT_LOOK
 
 
+SHELL_CLASSES = ("wall", "floor", "ceiling")
+
+
+def shift_color(rgb: tuple[int, int, int], hue_deg: float, sat: float, val: float, tint: np.ndarray) -> np.ndarray:
+    """An sRGB 0..255 colour rotated in hue, scaled in saturation and value, then tinted;
+    returned as linear reflectance."""
+    h, s, v = colorsys.rgb_to_hsv(*(c / 255.0 for c in rgb))
+    h = (h + hue_deg / 360.0) % 1.0
+    r, g, b = colorsys.hsv_to_rgb(h, min(s * sat, 1.0), min(v * val, 1.0))
+    return np.clip(np.array([r, g, b]) * tint, 0.0, 1.0) ** 2.2
+
+
 @dataclass
 class MaterialTable:
-    """Per-material arrays; a material is one instance of a look with its drawn colours."""
+    """Per-material arrays; a material is one instance of a look with its drawn colours.
+
+    ``appearance`` is the family's shift and ``room`` the room's own offset (hue degrees,
+    log saturation, log value), drawn once per room by :meth:`for_room`.
+    """
 
     pattern: list[int]
     color1: list[np.ndarray]
@@ -48,26 +65,52 @@ class MaterialTable:
     scale: list[float]
     emission: list[float]
     offset: list[np.ndarray]
+    appearance: Appearance = field(default_factory=Appearance)
+    room: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @classmethod
     def empty(cls) -> MaterialTable:
+        """A table with no shift (the looks' own colour distributions)."""
         return cls([], [], [], [], [], [])
 
-    def add(self, look: Look, rng: np.random.Generator) -> int:
-        """Draw one instance of ``look`` (colour choice and small tint jitter); returns its id.
+    @classmethod
+    def for_room(cls, appearance: Appearance, rng: np.random.Generator) -> MaterialTable:
+        """A table for one room of a family: the family's shift plus the room's own offset."""
+        room = (
+            float(rng.normal(0.0, appearance.room_hue_deg)),
+            float(rng.normal(0.0, appearance.room_saturation)),
+            float(rng.normal(0.0, appearance.room_value)),
+        )
+        return cls([], [], [], [], [], [], appearance, room)
 
+    def _pick_pattern(self, look: Look, rng: np.random.Generator) -> int:
+        weights = np.array(look.pattern_weights or [1.0] * len(look.patterns), dtype=np.float64)
+        bias = dict(self.appearance.pattern_bias)
+        weights = weights * np.array([bias.get(p, 1.0) for p in look.patterns])
+        return int(rng.choice(len(look.patterns), p=weights / weights.sum()))
+
+    def add(self, look: Look, rng: np.random.Generator, shell: bool = False) -> int:
+        """Draw one instance of ``look`` under the family shift and room offset (colour
+        choice, per-instance hue, saturation and brightness jitter, pattern); returns its id.
+
+        ``shell``: the look is a wall, floor or ceiling (gets the family's shell tint too).
         The random texture offset makes two instances of a look differ in pattern phase."""
-        c1 = srgb_to_linear(look.colors[int(rng.integers(len(look.colors)))])
-        tint = np.exp(rng.normal(0.0, 0.06) + rng.normal(0.0, 0.03, 3))
-        c1 = np.clip(c1 * tint, 0.0, 1.0)
+        app, (room_h, room_s, room_v) = self.appearance, self.room
+        tint = np.asarray(app.tint) * (np.asarray(app.shell_tint) if shell else 1.0)
+        hue = app.hue_deg + room_h + rng.normal(0.0, look.hue_jitter)
+        sat = app.saturation * np.exp(room_s + rng.normal(0.0, look.saturation_jitter))
+        val = app.value * np.exp(room_v + rng.normal(0.0, look.value_jitter))
+        c1 = shift_color(look.colors[int(rng.integers(len(look.colors)))], hue, sat, val, tint)
         if look.secondary:
-            c2 = srgb_to_linear(look.secondary[int(rng.integers(len(look.secondary)))])
+            c2 = shift_color(look.secondary[int(rng.integers(len(look.secondary)))], hue, sat, val, tint)
         else:
             c2 = c1 * (1.0 - look.contrast)
-        self.pattern.append(PATTERNS.index(look.patterns[int(rng.integers(len(look.patterns)))]))
+        k = self._pick_pattern(look, rng)
+        base_scale = look.scales[k] if look.scales else look.scale
+        self.pattern.append(PATTERNS.index(look.patterns[k]))
         self.color1.append(c1)
         self.color2.append(c2)
-        self.scale.append(look.scale * float(np.exp(rng.normal(0.0, 0.1))))
+        self.scale.append(base_scale * float(np.exp(rng.normal(0.0, 0.1))))
         self.emission.append(look.emission)
         self.offset.append(rng.uniform(-50.0, 50.0, 3))
         return len(self.pattern) - 1
