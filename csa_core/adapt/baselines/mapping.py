@@ -1,0 +1,279 @@
+"""The Mapping baseline (Frey et al., RA-L 2022): fuse per-frame predictions in a voxel map,
+read pseudo-labels back at each training view, fine-tune on camera images + map labels (GI+ML).
+
+Unlike the NeRF, the map cannot render new images, so replaying an old scene means keeping its
+training images and map labels explicitly; :class:`MappingMemory` holds them and its size is
+the Mapping row of the memory-footprint table (DESIGN.md, "Protocols and metrics").
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from csa_core.adapt.baselines.voxel_map import VoxelMapConfig, VoxelSemanticMap
+from csa_core.data.scene import Frame, Scene
+from csa_core.errors import CSAInputError
+
+if TYPE_CHECKING:
+    from torch import Tensor
+    from torch.utils.data import Dataset, Sampler
+
+    from csa_core.adapt.replay import ReplayBuffer
+    from csa_core.seg.config import TrainConfig
+    from csa_core.seg.dataset import PairTransform, SegmentationDataset
+    from csa_core.seg.models import SegmentationNet
+    from csa_core.seg.train import TrainResult
+
+MAPPING_FOLDER = "label-mapping"  # label folder name for the map's pseudo-labels
+
+
+def _frames_by_name(scene: Scene, names: Sequence[str]) -> list[Frame]:
+    by_name = {f.name: f for f in scene.frames}
+    missing = [n for n in names if n not in by_name]
+    if missing:
+        raise CSAInputError(
+            f"scene {scene.name}", f"no frame(s) named {', '.join(map(str, missing[:5]))}"
+        )
+    return [by_name[n] for n in names]
+
+
+def _check_prediction(scene: Scene, frame: Frame, prediction: np.ndarray) -> np.ndarray:
+    prediction = np.asarray(prediction)
+    h, w = frame.color.shape[:2]
+    if prediction.shape[:2] != (h, w) or prediction.ndim not in (2, 3):
+        raise CSAInputError(
+            f"scene {scene.name}",
+            f"prediction of frame {frame.name} has shape {prediction.shape}, image is {h}x{w}",
+        )
+    return prediction
+
+
+def build_voxel_map(
+    scene: Scene,
+    predictions: Mapping[str, np.ndarray],
+    config: VoxelMapConfig | None = None,
+) -> VoxelSemanticMap:
+    """Fuse ``predictions`` (frame name -> (H, W) NYU40 labels or (H, W, C) probabilities)
+    into a voxel map using each frame's depth and pose. Frames without depth add nothing;
+    a scene where no predicted frame has depth is an input error (Mapping needs depth)."""
+    frames = _frames_by_name(scene, list(predictions))
+    voxel_map = VoxelSemanticMap(config)
+    if frames and not any(f.depth is not None and f.depth_mask.any() for f in frames):
+        raise CSAInputError(
+            scene.root or f"scene {scene.name}", "Mapping needs depth, and no frame has any"
+        )
+    for frame in frames:
+        if frame.depth is None:
+            continue
+        prediction = _check_prediction(scene, frame, predictions[frame.name])
+        voxel_map.integrate(prediction, frame.depth, frame.pose, scene.intrinsics)
+    return voxel_map
+
+
+def render_map_labels(
+    voxel_map: VoxelSemanticMap, scene: Scene, names: Sequence[str]
+) -> dict[str, np.ndarray]:
+    """Pseudo-labels of the named frames read from the map with each frame's pose and depth
+    (0 where a pixel has no depth or its voxel is empty)."""
+    out: dict[str, np.ndarray] = {}
+    for frame in _frames_by_name(scene, names):
+        if frame.depth is None:
+            out[frame.name] = np.zeros(frame.color.shape[:2], dtype=np.uint8)
+        else:
+            out[frame.name] = voxel_map.labels_for_view(frame.depth, frame.pose, scene.intrinsics)
+    return out
+
+
+def mapping_pseudo_labels(
+    scene: Scene,
+    predictions: Mapping[str, np.ndarray],
+    config: VoxelMapConfig | None = None,
+) -> dict[str, np.ndarray]:
+    """Mapping's pseudo-labels: fuse the predicted frames, read the map back at the same frames."""
+    voxel_map = build_voxel_map(scene, predictions, config)
+    return render_map_labels(voxel_map, scene, list(predictions))
+
+
+def _encoded_bytes(image: np.ndarray, ext: str) -> int:
+    data = image[..., ::-1] if image.ndim == 3 else image  # OpenCV encodes BGR
+    ok, buf = cv2.imencode(ext, np.ascontiguousarray(data))
+    if not ok:
+        raise ValueError(f"could not encode an image as {ext}")
+    return int(buf.size)
+
+
+@dataclass(frozen=True)
+class MappingFootprint:
+    """Bytes Mapping keeps per scene: the voxel map, and the training images and map labels
+    it must store to replay the scene later (raw arrays, or encoded files when asked)."""
+
+    map_bytes: int
+    image_bytes: int
+    label_bytes: int
+    num_images: int
+
+    @property
+    def replay_bytes(self) -> int:
+        return self.image_bytes + self.label_bytes
+
+    @property
+    def total_bytes(self) -> int:
+        return self.map_bytes + self.replay_bytes
+
+
+@dataclass
+class MappingMemory:
+    """What Mapping remembers of one scene for replay: its training images and map labels."""
+
+    scene: str
+    images: list[np.ndarray]
+    labels: list[np.ndarray]
+    names: list[str] = field(default_factory=list)
+    map_bytes: int = 0
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def footprint(self, encode: str | None = None) -> MappingFootprint:
+        """Stored bytes; ``encode`` (``".png"``, ``".jpg"``) counts files instead of raw arrays
+        (labels are always counted as PNG then, since they must stay lossless)."""
+        if encode is None:
+            img = sum(int(i.nbytes) for i in self.images)
+            lab = sum(int(x.nbytes) for x in self.labels)
+        else:
+            img = sum(_encoded_bytes(i, encode) for i in self.images)
+            lab = sum(_encoded_bytes(x, ".png") for x in self.labels)
+        return MappingFootprint(self.map_bytes, img, lab, len(self.images))
+
+    def dataset(self, transform: PairTransform | None = None) -> SegmentationDataset:
+        """The stored pairs as a segmentation dataset (for replay in later steps)."""
+        from csa_core.seg.dataset import SegmentationDataset
+
+        names = [f"{self.scene}/{n}" for n in self.names] if self.names else None
+        return SegmentationDataset(self.images, self.labels, transform=transform, names=names)
+
+
+def mapping_replay_buffer(memories: Sequence[MappingMemory], size: int) -> ReplayBuffer:
+    """A replay buffer of ``size`` stored pairs from earlier scenes, split and picked by the
+    same rule as the NeRF replay (equal shares, views evenly spaced along each trajectory),
+    so Mapping and CSA see the same batch composition (DESIGN.md fixes ``size`` at 100)."""
+    from csa_core.adapt.replay import ReplayBuffer, evenly_spaced, split_buffer
+
+    buffer = ReplayBuffer()
+    for memory, share in zip(memories, split_buffer(size, len(memories)), strict=True):
+        for k in evenly_spaced(len(memory), share):
+            buffer.images.append(memory.images[k])
+            buffer.labels.append(memory.labels[k])
+            name = memory.names[k] if memory.names else str(k)
+            buffer.names.append(f"{memory.scene}/{name}")
+            buffer.sources.append(memory.scene)
+    return buffer
+
+
+def mapping_memory(
+    scene: Scene,
+    pseudo_labels: Mapping[str, np.ndarray],
+    voxel_map: VoxelSemanticMap | None = None,
+) -> MappingMemory:
+    """The replay memory of a scene: the camera images of the labelled frames and their map labels."""
+    frames = _frames_by_name(scene, list(pseudo_labels))
+    return MappingMemory(
+        scene=scene.name,
+        images=[f.color for f in frames],
+        labels=[np.asarray(pseudo_labels[f.name], dtype=np.uint8) for f in frames],
+        names=[f.name for f in frames],
+        map_bytes=voxel_map.nbytes if voxel_map is not None else 0,
+    )
+
+
+def finetune_on_map_labels(
+    model: SegmentationNet,
+    scene: Scene,
+    pseudo_labels: Mapping[str, np.ndarray],
+    train: TrainConfig | None = None,
+    replay: ReplayBuffer | None = None,
+    transform: PairTransform | None = None,
+    val_sets: Mapping[str, SegmentationDataset] | None = None,
+    batch_sampler: Sampler[list[int]] | None = None,
+) -> TrainResult:
+    """GI+ML: fine-tune ``model`` on the scene's camera images with the map's labels, plus the
+    stored pairs of ``replay`` (earlier scenes, see :func:`mapping_replay_buffer`), with the
+    segmentation training loop.
+
+    ``train`` defaults to the paper's adaptation setting (Adam lr 1e-5, batch 4). The current
+    scene's pairs come first in the concatenated dataset, so a ``batch_sampler`` can tell
+    them from the replayed ones.
+    """
+    from torch.utils.data import ConcatDataset
+
+    from csa_core.seg.config import TrainConfig
+    from csa_core.seg.dataset import SegmentationDataset
+    from csa_core.seg.train import train_segmentation
+
+    current = mapping_memory(scene, pseudo_labels).dataset(transform)
+    parts: list[Dataset[tuple[Tensor, Tensor]]] = [current]
+    if replay is not None and len(replay):
+        parts.append(SegmentationDataset(replay.images, replay.labels, transform, replay.names))
+    dataset = parts[0] if len(parts) == 1 else ConcatDataset(parts)
+    return train_segmentation(
+        model,
+        dataset,
+        train or TrainConfig.paper_adaptation(),
+        val_sets=val_sets,
+        batch_sampler=batch_sampler,
+    )
+
+
+@dataclass
+class MappingStep:
+    """One Mapping adaptation step: its pseudo-labels, map, replay memory and timings."""
+
+    pseudo_labels: dict[str, np.ndarray]
+    memory: MappingMemory
+    num_voxels: int
+    map_bytes: int
+    fusion_seconds: float
+    train_result: TrainResult | None = None
+
+
+def mapping_adapt(
+    model: SegmentationNet,
+    scene: Scene,
+    train: TrainConfig | None = None,
+    voxel: VoxelMapConfig | None = None,
+    replay: ReplayBuffer | None = None,
+    predictions: Mapping[str, np.ndarray] | None = None,
+    transform: PairTransform | None = None,
+) -> MappingStep:
+    """One step of the Mapping baseline on ``scene`` (one-step, or one step of a sequence).
+
+    Predicts the training views with ``model`` (unless ``predictions`` are given), fuses
+    them, reads pseudo-labels back, and fine-tunes ``model`` in place on GI+ML plus the
+    ``replay`` buffer of earlier scenes' stored pairs. Keep the returned ``memory`` for later steps.
+    """
+    names = [f.name for f in scene.train_frames]
+    if predictions is None:
+        from csa_core.seg.predict import predict_scene
+
+        predictions = predict_scene(model, scene, split="train")
+    else:
+        predictions = {n: predictions[n] for n in names if n in predictions}
+    t0 = time.perf_counter()
+    voxel_map = build_voxel_map(scene, predictions, voxel)
+    pseudo = render_map_labels(voxel_map, scene, list(predictions))
+    seconds = time.perf_counter() - t0
+    result = finetune_on_map_labels(model, scene, pseudo, train, replay, transform)
+    return MappingStep(
+        pseudo_labels=pseudo,
+        memory=mapping_memory(scene, pseudo, voxel_map),
+        num_voxels=voxel_map.num_voxels,
+        map_bytes=voxel_map.nbytes,
+        fusion_seconds=seconds,
+        train_result=result,
+    )

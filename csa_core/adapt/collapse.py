@@ -1,0 +1,180 @@
+"""Collapse of pseudo-labels, and the guard against it (ours; DESIGN.md "Known weaknesses").
+
+On badly exposed scenes or scenes without depth, joint training can drive the NeRF and the
+network towards one class: each supervises the other with ever more uniform labels. Two
+signals catch it without ground truth: the entropy of the labels' class histogram (a room
+shows many classes) and the agreement with the previous model's predictions (adaptation
+should refine them, not replace them).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from csa_core.adapt.config import CollapseConfig
+from csa_core.data.nyu40 import NUM_CLASSES
+
+log = logging.getLogger(__name__)
+
+LabelMaps = Mapping[str, np.ndarray] | Iterable[np.ndarray]
+
+
+def _maps(labels: LabelMaps) -> list[np.ndarray]:
+    return list(labels.values()) if isinstance(labels, Mapping) else list(labels)
+
+
+def class_histogram(labels: LabelMaps) -> np.ndarray:
+    """Pixel count per NYU40 id (index 0 = unknown) over all maps."""
+    counts = np.zeros(NUM_CLASSES + 1, dtype=np.int64)
+    for m in _maps(labels):
+        counts += np.bincount(np.asarray(m, dtype=np.int64).ravel(), minlength=NUM_CLASSES + 1)[
+            : NUM_CLASSES + 1
+        ]
+    return counts
+
+
+def histogram_entropy(counts: np.ndarray) -> float:
+    """Entropy (nats) of the class distribution over known pixels (id 0 excluded); 0 when empty."""
+    known = np.asarray(counts, dtype=np.float64)[1:]
+    total = known.sum()
+    if total <= 0:
+        return 0.0
+    p = known[known > 0] / total
+    return max(0.0, float(-(p * np.log(p)).sum()))
+
+
+def label_entropy(labels: LabelMaps) -> float:
+    """Entropy (nats) of the class histogram of label maps."""
+    return histogram_entropy(class_histogram(labels))
+
+
+def dominant_fraction(labels: LabelMaps) -> tuple[int, float]:
+    """The most frequent known class and the fraction of known pixels it covers."""
+    counts = class_histogram(labels)[1:]
+    total = counts.sum()
+    if total == 0:
+        return 0, 0.0
+    k = int(counts.argmax())
+    return k + 1, float(counts[k] / total)
+
+
+def agreement(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> float:
+    """Fraction of pixels, known in both, where two label sets (keyed by frame) agree."""
+    same = total = 0
+    for name, x in a.items():
+        if name not in b:
+            continue
+        y = b[name]
+        known = (x > 0) & (y > 0)
+        same += int((x[known] == y[known]).sum())
+        total += int(known.sum())
+    return same / total if total else float("nan")
+
+
+@dataclass
+class CollapseReport:
+    """What the detector measured and concluded, for the run's log."""
+
+    entropy: float
+    reference_entropy: float
+    dominant_class: int
+    dominant_fraction: float
+    agreement: float
+    collapsed: bool
+    reasons: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def detect_collapse(
+    labels: Mapping[str, np.ndarray],
+    previous: Mapping[str, np.ndarray] | None,
+    config: CollapseConfig | None = None,
+    prior_entropy: float | None = None,
+) -> CollapseReport:
+    """Judge pseudo-labels ``labels`` against the previous model's predictions ``previous``
+    on the same frames and, when given, ``prior_entropy`` (the class entropy of the
+    pre-training labels: what a healthy room looks like).
+
+    The reference entropy is the larger of the previous predictions' entropy and the prior,
+    so predictions that are collapsed themselves (a scene the network cannot see) do not
+    lower the bar.
+    """
+    cfg = config or CollapseConfig()
+    entropy = label_entropy(labels)
+    references = [label_entropy(previous)] if previous is not None else []
+    if prior_entropy is not None:
+        references.append(float(prior_entropy))
+    reference = max(references) if references else float("nan")
+    cls, frac = dominant_fraction(labels)
+    agree = agreement(labels, previous) if previous is not None else float("nan")
+    reasons = []
+    if math.isfinite(reference) and entropy < cfg.min_entropy_ratio * reference:
+        reasons.append(
+            f"class entropy {entropy:.2f} < {cfg.min_entropy_ratio:g} x reference {reference:.2f} nats"
+        )
+    if frac > cfg.max_dominant_fraction:
+        reasons.append(
+            f"class {cls} covers {100 * frac:.0f}% of the pixels (limit {100 * cfg.max_dominant_fraction:.0f}%)"
+        )
+    if math.isfinite(agree) and agree < cfg.min_agreement:
+        reasons.append(
+            f"agrees with the previous model on {100 * agree:.0f}% of the pixels (limit {100 * cfg.min_agreement:.0f}%)"
+        )
+    return CollapseReport(
+        entropy=entropy,
+        reference_entropy=reference,
+        dominant_class=cls,
+        dominant_fraction=frac,
+        agreement=agree,
+        collapsed=bool(reasons),
+        reasons=reasons,
+    )
+
+
+@dataclass
+class GuardDecision:
+    """What the guard did at one checkpoint of an adaptation (``stage``)."""
+
+    stage: str
+    action: str  # "continue", "fallback_predictions", "stop_joint" or "skip"
+    report: CollapseReport
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"stage": self.stage, "action": self.action, "report": self.report.to_dict()}
+
+
+def guard(
+    stage: str,
+    report: CollapseReport,
+    config: CollapseConfig,
+    previous_collapsed: bool,
+    in_joint: bool = False,
+) -> GuardDecision:
+    """Decide what to do about a collapse report, and log the decision.
+
+    Healthy labels: continue. Collapsed NeRF labels during joint rounds: stop the joint
+    updates and keep the network from before the collapsed round. Collapsed labels before
+    training: fall back to the previous model's own predictions when those are healthy
+    (``fallback="predictions"``), else skip the scene (keep the previous network).
+    """
+    if not config.enabled or not report.collapsed:
+        action = "continue"
+    elif in_joint:
+        action = "stop_joint"
+    elif config.fallback == "predictions" and not previous_collapsed:
+        action = "fallback_predictions"
+    else:
+        action = "skip"
+    decision = GuardDecision(stage=stage, action=action, report=report)
+    if report.collapsed:
+        note = action if config.enabled else "guard disabled, continuing"
+        log.warning("collapse at %s: %s -> %s", stage, "; ".join(report.reasons), note)
+    return decision

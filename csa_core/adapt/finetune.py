@@ -1,0 +1,259 @@
+"""One-step adaptation to one scene without its labels (DESIGN.md "The method" step 4).
+
+Modes: ``gi_nl`` fine-tunes on the camera images with the NeRF's labels, ``ni_nl`` on the
+NeRF's rendered images with its labels, ``joint`` alternates network and NeRF updates
+(:mod:`csa_core.adapt.joint`). Before scoring on camera images the BatchNorm statistics are
+re-estimated on the scene's camera images (AdaBN), which matters most after training on
+rendered ones. Replay pairs and the pre-training slice join the batches as DESIGN.md says.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from csa_core.adapt.collapse import GuardDecision, detect_collapse, guard
+from csa_core.adapt.config import AdaptConfig
+from csa_core.adapt.pseudo_labels import PseudoLabels, label_miou, make_pseudo_labels
+from csa_core.adapt.replay import MixedBatchSampler, PretrainReplay, ReplayBuffer
+from csa_core.data.scene import Scene
+from csa_core.nerf.model import SemanticNerf
+from csa_core.seg.adabn import adapt_batchnorm
+from csa_core.seg.config import TrainConfig
+from csa_core.seg.dataset import SegmentationDataset
+from csa_core.seg.models import SegmentationNet
+from csa_core.seg.predict import evaluate_scene
+from csa_core.seg.train import SegmentationTrainer
+from csa_core.seg.transforms import JointAugment
+
+log = logging.getLogger(__name__)
+
+
+def training_pairs(
+    images: Sequence[np.ndarray],
+    labels: Sequence[np.ndarray],
+    replay: ReplayBuffer | None = None,
+    pretrain: PretrainReplay | None = None,
+    augment: bool = True,
+) -> tuple[SegmentationDataset, int, int]:
+    """One dataset: the current scene's pairs, then the replay buffer (together the "current
+    or buffer" part), then the pre-training slice. Returns it with the sizes of both parts."""
+    imgs, labs = list(images), list(labels)
+    if replay is not None:
+        imgs += replay.images
+        labs += replay.labels
+    primary = len(imgs)
+    if pretrain is not None:
+        imgs += pretrain.images
+        labs += pretrain.labels
+    transform = JointAugment() if augment else None
+    return SegmentationDataset(imgs, labs, transform=transform), primary, len(imgs) - primary
+
+
+class SegFinetuner:
+    """Adam on the network over mixed batches, one epoch (pass over the current + buffer
+    pairs) at a time, with one learning-rate schedule across all epochs of the step."""
+
+    def __init__(
+        self, model: SegmentationNet, config: AdaptConfig, epochs: int, batches_per_epoch: int
+    ):
+        seg = config.seg
+        self.config = config
+        self.train_config = TrainConfig(
+            epochs=max(1, epochs),
+            batch_size=seg.batch_size,
+            lr=seg.lr,
+            schedule=seg.schedule,
+            seed=seg.seed,
+            device=seg.device,
+            progress=False,
+            precise_bn_images=0,
+        )
+        self.trainer = SegmentationTrainer(
+            model, self.train_config, total_steps=max(1, epochs * batches_per_epoch)
+        )
+        self.epochs_done = 0
+
+    def epoch(self, dataset: SegmentationDataset, primary: int, secondary: int) -> float:
+        """One pass; returns the mean loss."""
+        r = self.config.replay
+        per_batch = self.config.seg.batch_size
+        pre = min(r.pretrain_per_batch, per_batch - 1) if secondary else 0
+        sampler = MixedBatchSampler(
+            primary,
+            secondary,
+            per_batch - pre,
+            pre,
+            seed=self.config.seg.seed + 1000 * self.epochs_done,
+        )
+        torch.manual_seed(self.config.seg.seed + self.epochs_done)  # augmentation draws
+        loss = self.trainer.run_epoch(DataLoader(dataset, batch_sampler=sampler))
+        self.epochs_done += 1
+        return loss
+
+
+def batches_per_epoch(primary: int, secondary: int, config: AdaptConfig) -> int:
+    per_batch = config.seg.batch_size
+    pre = min(config.replay.pretrain_per_batch, per_batch - 1) if secondary else 0
+    return math.ceil(primary / (per_batch - pre))
+
+
+def apply_adabn(
+    model: SegmentationNet,
+    camera_images: Sequence[np.ndarray],
+    pretrain: PretrainReplay | None = None,
+    seed: int = 0,
+    device: str | None = None,
+) -> int:
+    """AdaBN on camera images: the scene's own and, when replayed, the pre-training slice
+    (so earlier domains keep a say in the statistics)."""
+    images = list(camera_images) + (list(pretrain.images) if pretrain is not None else [])
+    if len(images) < 2:
+        return 0
+    return adapt_batchnorm(model, images, batch_size=16, device=device, seed=seed)
+
+
+def evaluate(model: SegmentationNet, scene: Scene, device: str | None = None) -> dict[str, float]:
+    """mIoU on the scene's validation and training views."""
+    return {
+        split: evaluate_scene(model, scene, split, device=device).miou()
+        for split in ("val", "train")
+    }
+
+
+@dataclass
+class OneStepResult:
+    """What one adaptation step did and measured (mIoU as fractions)."""
+
+    scene: str
+    mode: str
+    before: dict[str, float]
+    after: dict[str, float]
+    prediction_miou: float  # the previous network's labels on the training views
+    pseudo_label_miou: float  # the NeRF's labels that trained the network (first fit)
+    final_label_miou: float  # the NeRF's labels after the last joint round
+    decisions: list[GuardDecision] = field(default_factory=list)
+    history: list[dict[str, float]] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=dict)
+    trained: bool = True
+    nerf: SemanticNerf | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "scene": self.scene,
+            "mode": self.mode,
+            "before": self.before,
+            "after": self.after,
+            "prediction_miou": self.prediction_miou,
+            "pseudo_label_miou": self.pseudo_label_miou,
+            "final_label_miou": self.final_label_miou,
+            "decisions": [d.to_dict() for d in self.decisions],
+            "history": self.history,
+            "seconds": self.seconds,
+            "trained": self.trained,
+        }
+
+
+def check_labels(
+    stage: str,
+    labels: Mapping[str, np.ndarray],
+    pseudo: PseudoLabels,
+    config: AdaptConfig,
+    prior_entropy: float | None,
+    in_joint: bool = False,
+) -> GuardDecision:
+    """Collapse check of ``labels`` against the previous model's predictions, and the guard's decision."""
+    report = detect_collapse(labels, pseudo.predictions, config.collapse, prior_entropy)
+    previous = detect_collapse(pseudo.predictions, None, config.collapse, prior_entropy)
+    return guard(
+        stage, report, config.collapse, previous_collapsed=previous.collapsed, in_joint=in_joint
+    )
+
+
+def finetune_on_labels(
+    model: SegmentationNet,
+    images: Sequence[np.ndarray],
+    labels: Sequence[np.ndarray],
+    config: AdaptConfig,
+    epochs: int,
+    replay: ReplayBuffer | None = None,
+    pretrain: PretrainReplay | None = None,
+) -> list[float]:
+    """Fine-tune on image/label pairs (plus replay) for ``epochs``; returns the epoch losses."""
+    dataset, primary, secondary = training_pairs(images, labels, replay, pretrain)
+    tuner = SegFinetuner(model, config, epochs, batches_per_epoch(primary, secondary, config))
+    return [tuner.epoch(dataset, primary, secondary) for _ in range(epochs)]
+
+
+def adapt_one_step(
+    model: SegmentationNet,
+    scene: Scene,
+    config: AdaptConfig,
+    replay: ReplayBuffer | None = None,
+    pretrain: PretrainReplay | None = None,
+    prior_entropy: float | None = None,
+    evaluate_before: bool = True,
+) -> OneStepResult:
+    """Adapt ``model`` in place to ``scene`` (its labels are read only to score) with
+    ``config.mode``; returns the scores before and after, pseudo-label quality, the guard's
+    decisions and timings. The fitted NeRF is in ``result.nerf`` for the memory bank."""
+    if config.mode == "joint":
+        from csa_core.adapt.joint import joint_adapt
+
+        return joint_adapt(model, scene, config, replay, pretrain, prior_entropy, evaluate_before)
+    device = config.seg.device
+    t0 = time.perf_counter()
+    before = evaluate(model, scene, device) if evaluate_before else {}
+    t_eval = time.perf_counter() - t0
+    nerf, pseudo = make_pseudo_labels(model, scene, config.nerf, device)
+    seconds = {"evaluate": t_eval, **pseudo.seconds}
+    decision = check_labels("pseudo_labels", pseudo.labels, pseudo, config, prior_entropy)
+    result = OneStepResult(
+        scene=scene.name,
+        mode=config.mode,
+        before=before,
+        after={},
+        prediction_miou=label_miou(pseudo.predictions, scene),
+        pseudo_label_miou=label_miou(pseudo.labels, scene),
+        final_label_miou=label_miou(pseudo.labels, scene),
+        decisions=[decision],
+        nerf=nerf,
+    )
+    t1 = time.perf_counter()
+    if decision.action == "skip":
+        result.trained = False
+    else:
+        labels = pseudo.predictions if decision.action == "fallback_predictions" else pseudo.labels
+        rendered = config.mode == "ni_nl" and decision.action == "continue"
+        losses = finetune_on_labels(
+            model,
+            pseudo.images(rendered),
+            [labels[n] for n in pseudo.names],
+            config,
+            config.seg.epochs,
+            replay,
+            pretrain,
+        )
+        result.history = [{"epoch": k + 1, "loss": loss} for k, loss in enumerate(losses)]
+        if config.adabn:
+            apply_adabn(model, pseudo.images(False), pretrain, config.seg.seed, device)
+    seconds["finetune"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    result.after = evaluate(model, scene, device)
+    seconds["evaluate"] += time.perf_counter() - t2
+    result.seconds = seconds
+    return result
+
+
+def copy_model(model: SegmentationNet) -> SegmentationNet:
+    """A deep copy (weights and BatchNorm statistics) of a network."""
+    return copy.deepcopy(model)

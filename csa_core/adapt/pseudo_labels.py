@@ -1,0 +1,169 @@
+"""Pseudo-labels of a new scene: predict with the current network, fuse in a Semantic-NeRF,
+render labels (and images) back at the training views (DESIGN.md "The method" steps 1-3)."""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+from csa_core.adapt.config import NerfBudget
+from csa_core.adapt.nerf_training import NerfLabelTrainer
+from csa_core.data.camera import Intrinsics
+from csa_core.data.scene import NYU40_FOLDER, Frame, Scene
+from csa_core.eval.miou import ConfusionMatrix
+from csa_core.nerf.config import NerfConfig
+from csa_core.nerf.config import preset as nerf_preset
+from csa_core.nerf.fit import fit_semantic_nerf, image_rays
+from csa_core.nerf.model import SemanticNerf
+from csa_core.seg.predict import predict_labels
+
+PREDICTION_FOLDER = "prediction"
+
+
+def nerf_config(budget: NerfBudget) -> NerfConfig:
+    """The NeRF config of a budget: its preset with the step count, ray batch, table size and seed."""
+    cfg = nerf_preset(budget.preset)
+    cfg.optim.steps = budget.prefit_steps
+    if budget.rays_per_step is not None:
+        cfg.optim.rays_per_step = budget.rays_per_step
+    enc = cfg.field.encoding
+    if budget.log2_table_size is not None:
+        enc.log2_table_size = budget.log2_table_size
+    if budget.num_levels is not None:
+        enc.num_levels = budget.num_levels
+    if budget.finest_resolution is not None:
+        enc.finest_resolution = budget.finest_resolution
+        cfg.sampler.occupancy_resolution = min(cfg.sampler.occupancy_resolution, 32)
+    cfg.seed = budget.seed
+    return cfg
+
+
+def predict_frames(
+    model: nn.Module, frames: Sequence[Frame], batch_size: int = 8, device: str | None = None
+) -> dict[str, np.ndarray]:
+    """``{frame name: NYU40 map}`` of the network on the frames' camera images."""
+    if not frames:
+        return {}
+    labels = predict_labels(model, [f.color for f in frames], batch_size=batch_size, device=device)
+    return {f.name: lab for f, lab in zip(frames, labels, strict=True)}
+
+
+def with_labels(scene: Scene, folder: str, labels: Mapping[str, np.ndarray]) -> Scene:
+    """A copy of ``scene`` whose frames named in ``labels`` carry them under ``folder``
+    (images are shared, the input scene is not modified)."""
+    frames = []
+    for f in scene.frames:
+        g = copy.copy(f)
+        g.labels = dict(f.labels)
+        if f.name in labels:
+            g.labels[folder] = labels[f.name]
+        frames.append(g)
+    out = copy.copy(scene)
+    out.frames = frames
+    return out
+
+
+@dataclass
+class PseudoLabels:
+    """Training pairs of one scene made without its labels.
+
+    ``camera``: the camera images; ``rendered``: the NeRF's images at the same poses;
+    ``labels``: the NeRF's labels there; ``predictions``: the network's labels on the camera
+    images (what the NeRF was fitted to). All keyed by frame name, in ``names`` order.
+    """
+
+    names: list[str]
+    camera: dict[str, np.ndarray]
+    rendered: dict[str, np.ndarray]
+    labels: dict[str, np.ndarray]
+    predictions: dict[str, np.ndarray]
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def images(self, rendered: bool) -> list[np.ndarray]:
+        source = self.rendered if rendered else self.camera
+        return [source[n] for n in self.names]
+
+    def label_list(self) -> list[np.ndarray]:
+        return [self.labels[n] for n in self.names]
+
+
+def label_miou(
+    labels: Mapping[str, np.ndarray], scene: Scene, label_folder: str = NYU40_FOLDER
+) -> float:
+    """mIoU of label maps against the scene's ground truth (evaluation only, never training)."""
+    matrix = ConfusionMatrix()
+    for f in scene.frames:
+        if f.name in labels and label_folder in f.labels:
+            matrix.update(labels[f.name], f.labels[label_folder])
+    return matrix.miou()
+
+
+def render_at_frames(
+    nerf: SemanticNerf, frames: Sequence[Frame], intrinsics: Intrinsics
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """NeRF images and labels at the frames' poses.
+
+    Where a frame has sensor depth, samples are placed around it (the fit's depth-guided
+    sampler, 16 samples per ray instead of up to 96 marching samples): the training views of
+    a scene always have it, and on a CPU rendering dominates joint training otherwise.
+    """
+    h, w = intrinsics.height, intrinsics.width
+    images: dict[str, np.ndarray] = {}
+    labels: dict[str, np.ndarray] = {}
+    for f in frames:
+        origins, dirs = image_rays(intrinsics, f.pose, nerf.device)
+        if f.depth is not None and bool((f.depth > 0).any()):
+            depth = torch.as_tensor(f.depth.reshape(-1), dtype=torch.float32, device=nerf.device)
+            out = nerf.render_rays(origins, dirs, sampler="depth", depth=depth)
+        else:
+            out = nerf.render_rays(origins, dirs)
+        rgb = (out["rgb"].clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).reshape(h, w, 3)
+        images[f.name] = rgb.cpu().numpy()
+        cls = out["semantics"].argmax(dim=-1) + 1
+        labels[f.name] = cls.to(torch.uint8).reshape(h, w).cpu().numpy()
+    return images, labels
+
+
+def render_pairs(
+    nerf: SemanticNerf, scene: Scene
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """NeRF images and labels at the scene's training views."""
+    return render_at_frames(nerf, scene.train_frames, scene.intrinsics)
+
+
+def make_pseudo_labels(
+    model: nn.Module, scene: Scene, budget: NerfBudget, device: str | None = None
+) -> tuple[SemanticNerf, PseudoLabels]:
+    """Predict the training frames, fit a NeRF to the predictions, render labels and images."""
+    frames = scene.train_frames
+    t0 = time.perf_counter()
+    predictions = predict_frames(model, frames, device=device)
+    t1 = time.perf_counter()
+    labelled = with_labels(scene, PREDICTION_FOLDER, predictions)
+    nerf, _ = fit_semantic_nerf(
+        labelled, PREDICTION_FOLDER, nerf_config(budget), device=device, progress=False
+    )
+    if budget.semantic_steps > 0:
+        trainer = NerfLabelTrainer(
+            nerf, scene, rays_per_step=budget.rays_per_step, seed=budget.seed
+        )
+        trainer.set_labels(predictions)
+        trainer.train_semantics(budget.semantic_steps)
+    t2 = time.perf_counter()
+    rendered, labels = render_pairs(nerf, scene)
+    t3 = time.perf_counter()
+    pseudo = PseudoLabels(
+        names=[f.name for f in frames],
+        camera={f.name: f.color for f in frames},
+        rendered=rendered,
+        labels=labels,
+        predictions=predictions,
+        seconds={"predict": t1 - t0, "nerf_fit": t2 - t1, "render": t3 - t2},
+    )
+    return nerf, pseudo
