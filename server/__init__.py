@@ -1,0 +1,1 @@
+"""The CSA service: FastAPI app, database, artifact store, job worker (see ``create_app``)."""

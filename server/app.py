@@ -1,0 +1,97 @@
+"""The FastAPI application factory.
+
+``create_app()`` reads :class:`Settings` from the environment; tests and ``csa serve`` pass
+their own. The app opens the database (migrating it), the artifact store and, unless
+``CSA_EMBEDDED_WORKER=false``, starts a worker thread that runs queued jobs.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import Depends, FastAPI
+
+from csa_core import __version__
+from server.auth import require_api_key, resolve_api_keys
+from server.errors import install_error_handlers
+from server.model_cache import ModelCache
+from server.nerf_cache import NerfCache
+from server.request_metrics import RequestMetricsMiddleware, RequestStats, RouteTemplates
+from server.routers import (
+    continual,
+    frames,
+    health,
+    inference,
+    jobs,
+    memory,
+    models,
+    prometheus,
+    rendering,
+    scenes,
+)
+from server.services import open_services
+from server.settings import Settings
+from server.upload_limits import BodyLimitMiddleware
+from server.worker import Worker
+
+log = logging.getLogger(__name__)
+
+API_PREFIX = "/api/v1"
+
+DESCRIPTION = """
+Continual semantic adaptation as a service: upload posed RGB-D frames of the scenes a robot
+visits, fit a Semantic-NeRF per scene (the memory bank), adapt the segmentation network
+without labels, and serve inference and rendering.
+
+Every route but `/health` needs an API key: `X-API-Key: KEY` or `Authorization: Bearer KEY`.
+Errors are `{"error": {"code", "message", "field"}}`.
+"""
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    stats = RequestStats()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        services = open_services(settings)
+        services.api_keys = resolve_api_keys(settings)
+        app.state.services = services
+        device = None if settings.device == "auto" else settings.device
+        app.state.model_cache = ModelCache(services.store, settings.model_cache_size, device)
+        app.state.nerf_cache = NerfCache(services.store, settings.model_cache_size, device)
+        worker = None
+        if settings.embedded_worker:
+            worker = Worker(services, mode="embedded")
+            worker.start()
+        app.state.worker = worker
+        try:
+            yield
+        finally:
+            if worker is not None:
+                worker.stop(timeout=60)
+            services.close()
+
+    app = FastAPI(
+        title="CSA: continual semantic adaptation",
+        version=__version__,
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        docs_url="/docs" if settings.public_docs else None,
+        redoc_url=None,
+        openapi_url="/openapi.json" if settings.public_docs else None,
+    )
+    app.state.request_stats = stats
+    install_error_handlers(app)
+    app.add_middleware(BodyLimitMiddleware, settings=settings)
+    templates = RouteTemplates(lambda: [*app.openapi()["paths"], "/docs", "/openapi.json"])
+    app.add_middleware(RequestMetricsMiddleware, stats=stats, templates=templates)
+
+    app.include_router(health.router)
+    secured = [Depends(require_api_key)]
+    app.include_router(prometheus.router, dependencies=secured)
+    for module in (scenes, frames, jobs, models, memory, continual, inference, rendering):
+        app.include_router(module.router, prefix=API_PREFIX, dependencies=secured)
+    return app

@@ -1,0 +1,164 @@
+"""Safe extraction of uploaded tar and zip archives (a scene folder sent in one request).
+
+Only regular files and folders are extracted. Refused: absolute paths, ``..`` components,
+symbolic and hard links, devices and FIFOs, more than ``max_members`` entries, a member larger
+than ``max_member_bytes``, more than ``max_total_bytes`` in all, and zip members whose
+compression ratio exceeds ``max_ratio`` (archive bombs). Sizes are counted while copying,
+so a header that lies about a size gains nothing.
+"""
+
+from __future__ import annotations
+
+import shutil
+import stat
+import tarfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import IO
+
+_CHUNK = 1 << 20
+
+
+class UnsafeArchive(ValueError):
+    """The archive is malformed, too large or tries to write outside its folder."""
+
+
+@dataclass(frozen=True)
+class ArchiveLimits:
+    max_members: int
+    max_member_bytes: int
+    max_total_bytes: int
+    max_ratio: float
+
+
+def _safe_relpath(name: str) -> PurePosixPath | None:
+    """The member's path relative to the extraction folder, or None for the folder itself."""
+    name = name.replace("\\", "/")
+    if name.startswith("/") or (len(name) > 1 and name[1] == ":"):
+        raise UnsafeArchive(f"{name!r}: absolute path")
+    parts = [p for p in PurePosixPath(name).parts if p not in ("", ".")]
+    if any(p == ".." for p in parts):
+        raise UnsafeArchive(f"{name!r}: path leaves the archive folder ('..')")
+    if any("\x00" in p for p in parts):
+        raise UnsafeArchive(f"{name!r}: bad character in path")
+    return PurePosixPath(*parts) if parts else None
+
+
+class _Budget:
+    def __init__(self, limits: ArchiveLimits):
+        self.limits = limits
+        self.members = 0
+        self.total = 0
+
+    def member(self, name: str) -> None:
+        self.members += 1
+        if self.members > self.limits.max_members:
+            raise UnsafeArchive(f"more than {self.limits.max_members} entries")
+
+    def copy(self, src: IO[bytes], dest: Path, name: str) -> None:
+        written = 0
+        with open(dest, "wb") as out:
+            while chunk := src.read(_CHUNK):
+                written += len(chunk)
+                self.total += len(chunk)
+                if written > self.limits.max_member_bytes:
+                    raise UnsafeArchive(f"{name!r}: larger than {self.limits.max_member_bytes} bytes")
+                if self.total > self.limits.max_total_bytes:
+                    raise UnsafeArchive(f"unpacks to more than {self.limits.max_total_bytes} bytes")
+                out.write(chunk)
+
+
+def _target(root: Path, rel: PurePosixPath) -> Path:
+    dest = (root / rel).resolve()
+    if not dest.is_relative_to(root):
+        raise UnsafeArchive(f"{str(rel)!r}: path leaves the archive folder")
+    return dest
+
+
+def _extract_tar(path: Path, root: Path, limits: ArchiveLimits) -> None:
+    budget = _Budget(limits)
+    try:
+        with tarfile.open(path, mode="r:*") as tf:
+            while (m := tf.next()) is not None:
+                budget.member(m.name)
+                rel = _safe_relpath(m.name)
+                if m.issym() or m.islnk():
+                    raise UnsafeArchive(f"{m.name!r}: links are not allowed")
+                if not (m.isfile() or m.isdir()):
+                    raise UnsafeArchive(f"{m.name!r}: only regular files and folders are allowed")
+                if rel is None:
+                    continue
+                dest = _target(root, rel)
+                if m.isdir():
+                    dest.mkdir(parents=True, exist_ok=True)
+                    continue
+                if m.size > limits.max_member_bytes:
+                    raise UnsafeArchive(f"{m.name!r}: larger than {limits.max_member_bytes} bytes")
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                src = tf.extractfile(m)
+                if src is None:
+                    raise UnsafeArchive(f"{m.name!r}: cannot be read")
+                with src:
+                    budget.copy(src, dest, m.name)
+    except (tarfile.TarError, EOFError, OSError) as e:
+        raise UnsafeArchive(f"not a readable tar archive ({e})") from None
+
+
+def _extract_zip(path: Path, root: Path, limits: ArchiveLimits) -> None:
+    budget = _Budget(limits)
+    try:
+        with zipfile.ZipFile(path) as zf:
+            infos = zf.infolist()
+            if len(infos) > limits.max_members:
+                raise UnsafeArchive(f"more than {limits.max_members} entries")
+            declared = 0
+            for info in infos:
+                _safe_relpath(info.filename)
+                file_type = stat.S_IFMT(info.external_attr >> 16)  # 0: made on a system without types
+                if file_type == stat.S_IFLNK:
+                    raise UnsafeArchive(f"{info.filename!r}: links are not allowed")
+                if file_type not in (0, stat.S_IFREG, stat.S_IFDIR):
+                    raise UnsafeArchive(f"{info.filename!r}: only regular files and folders are allowed")
+                if info.file_size > limits.max_member_bytes:
+                    raise UnsafeArchive(f"{info.filename!r}: larger than {limits.max_member_bytes} bytes")
+                if info.file_size > 1024 and info.file_size > limits.max_ratio * max(info.compress_size, 1):
+                    raise UnsafeArchive(f"{info.filename!r}: compression ratio above {limits.max_ratio:g} (archive bomb?)")
+                declared += info.file_size
+            if declared > limits.max_total_bytes:
+                raise UnsafeArchive(f"unpacks to more than {limits.max_total_bytes} bytes")
+            for info in infos:
+                budget.member(info.filename)
+                rel = _safe_relpath(info.filename)
+                if rel is None:
+                    continue
+                dest = _target(root, rel)
+                if info.is_dir():
+                    dest.mkdir(parents=True, exist_ok=True)
+                    continue
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                with zf.open(info) as src:
+                    budget.copy(src, dest, info.filename)
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, NotImplementedError) as e:
+        raise UnsafeArchive(f"not a readable zip archive ({e})") from None
+
+
+def extract_archive(path: Path, dest: Path, limits: ArchiveLimits) -> Path:
+    """Extract a tar (optionally gz/bz2/xz) or zip archive into the empty folder ``dest``.
+
+    On any refusal ``dest`` is emptied and :class:`UnsafeArchive` says why.
+    """
+    dest.mkdir(parents=True, exist_ok=True)
+    root = dest.resolve()
+    try:
+        if zipfile.is_zipfile(path):
+            _extract_zip(path, root, limits)
+        elif tarfile.is_tarfile(path):
+            _extract_tar(path, root, limits)
+        else:
+            raise UnsafeArchive("not a tar or zip archive")
+    except BaseException:
+        shutil.rmtree(root, ignore_errors=True)
+        root.mkdir(parents=True, exist_ok=True)
+        raise
+    return root

@@ -1,0 +1,182 @@
+"""The artifact store: content-addressed files on disk, checksums in the database.
+
+A file is stored under ``blobs/<sha[:2]>/<sha>``; it is written to a temporary name, fsynced
+and renamed into place, so a crash never leaves a half-written blob under a checksum name.
+Storing the same bytes twice is a no-op. The ``artifacts`` table records each blob's sha256,
+size and kind; :meth:`ArtifactStore.verify` re-hashes the files against it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import tempfile
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from server.db.models import Artifact, Frame, ModelVersion, NerfCheckpoint
+
+_CHUNK = 1 << 20
+
+
+class ArtifactMissing(LookupError):
+    """A checksum the database refers to has no (intact) file in the store."""
+
+
+@dataclass(frozen=True)
+class StoredFile:
+    sha256: str
+    size_bytes: int
+
+
+@dataclass(frozen=True)
+class VerifyReport:
+    checked: int
+    missing: list[str]
+    corrupt: list[str]
+
+    @property
+    def ok(self) -> bool:
+        return not self.missing and not self.corrupt
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(_CHUNK):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+class ArtifactStore:
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        (self.root / "blobs").mkdir(parents=True, exist_ok=True)
+        (self.root / "tmp").mkdir(parents=True, exist_ok=True)
+
+    def path_of(self, sha256: str) -> Path:
+        if len(sha256) != 64 or any(c not in "0123456789abcdef" for c in sha256):
+            raise ValueError(f"not a sha256 hex digest: {sha256!r}")
+        return self.root / "blobs" / sha256[:2] / sha256
+
+    # -- writing -------------------------------------------------------------------------
+
+    def _commit_tmp(self, tmp: Path, sha: str) -> None:
+        dest = self.path_of(sha)
+        if dest.is_file() and dest.stat().st_size == tmp.stat().st_size:
+            tmp.unlink(missing_ok=True)
+            return
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp, dest)
+
+    def put_bytes(self, session: Session, data: bytes, kind: str, media_type: str = "application/octet-stream") -> StoredFile:
+        """Store ``data`` (atomically, once) and record it in the session's transaction."""
+        sha = hashlib.sha256(data).hexdigest()
+        fd, name = tempfile.mkstemp(dir=self.root / "tmp", suffix=".part")
+        tmp = Path(name)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+            self._commit_tmp(tmp, sha)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return self._record(session, sha, len(data), kind, media_type)
+
+    def put_file(self, session: Session, path: Path, kind: str, media_type: str = "application/octet-stream") -> StoredFile:
+        """Copy a file into the store (atomically, once) and record it."""
+        h = hashlib.sha256()
+        size = 0
+        fd, name = tempfile.mkstemp(dir=self.root / "tmp", suffix=".part")
+        tmp = Path(name)
+        try:
+            with open(path, "rb") as src, os.fdopen(fd, "wb") as dst:
+                while chunk := src.read(_CHUNK):
+                    h.update(chunk)
+                    size += len(chunk)
+                    dst.write(chunk)
+                dst.flush()
+                os.fsync(dst.fileno())
+            sha = h.hexdigest()
+            self._commit_tmp(tmp, sha)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return self._record(session, sha, size, kind, media_type)
+
+    def _record(self, session: Session, sha: str, size: int, kind: str, media_type: str) -> StoredFile:
+        if session.get(Artifact, sha) is None:
+            session.add(Artifact(sha256=sha, size_bytes=size, kind=kind, media_type=media_type))
+            session.flush()
+        return StoredFile(sha, size)
+
+    # -- reading -------------------------------------------------------------------------
+
+    def open_verified(self, sha256: str) -> Path:
+        """Path of an existing blob (size checked); raises :class:`ArtifactMissing`."""
+        p = self.path_of(sha256)
+        if not p.is_file():
+            raise ArtifactMissing(f"artifact {sha256[:12]} is missing from the store")
+        return p
+
+    def read_bytes(self, sha256: str) -> bytes:
+        return self.open_verified(sha256).read_bytes()
+
+    def materialize(self, sha256: str, dest: Path) -> Path:
+        """Make ``dest`` a copy of a blob (a hard link when possible: blobs are never modified)."""
+        src = self.open_verified(sha256)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(src, dest)
+        except OSError:
+            shutil.copyfile(src, dest)
+        return dest
+
+    # -- integrity -----------------------------------------------------------------------
+
+    def verify(self, session: Session, shas: Iterable[str] | None = None) -> VerifyReport:
+        """Re-hash blobs (all recorded ones by default) and compare with the database."""
+        rows: Iterator[Artifact]
+        if shas is None:
+            rows = iter(session.scalars(select(Artifact)).all())
+        else:
+            rows = (a for a in (session.get(Artifact, s) for s in shas) if a is not None)
+        missing, corrupt, n = [], [], 0
+        for art in rows:
+            n += 1
+            p = self.path_of(art.sha256)
+            if not p.is_file():
+                missing.append(art.sha256)
+            elif p.stat().st_size != art.size_bytes or sha256_file(p) != art.sha256:
+                corrupt.append(art.sha256)
+        return VerifyReport(n, missing, corrupt)
+
+    def collect_garbage(self, session: Session) -> list[str]:
+        """Delete the rows of artifacts that no frame, model version or NeRF checkpoint refers
+        to; returns their checksums for :meth:`remove_unrecorded` once the transaction commits."""
+        used: set[str] = set()
+        for c, d, lab in session.execute(select(Frame.color_sha256, Frame.depth_sha256, Frame.labels_sha256)):
+            used.update(s for s in (c, d, lab) if s)
+        for (files,) in session.execute(select(ModelVersion.files)):
+            used.update(files.values())
+        for (files,) in session.execute(select(NerfCheckpoint.files)):
+            used.update(files.values())
+        removed = []
+        for art in session.scalars(select(Artifact)).all():
+            if art.sha256 not in used:
+                session.delete(art)
+                removed.append(art.sha256)
+        session.flush()
+        return removed
+
+    def remove_unrecorded(self, session: Session, shas: Iterable[str]) -> None:
+        """Delete blob files whose rows are gone (call after the deleting transaction commits;
+        a blob that an upload recorded again in the meantime is kept)."""
+        for sha in shas:
+            if session.get(Artifact, sha) is None:
+                self.path_of(sha).unlink(missing_ok=True)

@@ -1,0 +1,89 @@
+"""API errors: every 4xx/5xx answer is ``{"error": {"code", "message", "field"}}``.
+
+``field`` names the request field at fault (``"depth"``, ``"params.scene_id"``) or is null.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from csa_core.errors import CSAInputError
+
+log = logging.getLogger(__name__)
+
+
+class APIError(Exception):
+    """An error the client can act on; raised anywhere in a request."""
+
+    def __init__(self, status: int, code: str, message: str, field: str | None = None, headers: dict[str, str] | None = None):
+        super().__init__(message)
+        self.status = status
+        self.code = code
+        self.message = message
+        self.field = field
+        self.headers = headers
+
+
+def not_found(what: str, ident: Any) -> APIError:
+    return APIError(404, "not_found", f"{what} {ident!r} not found")
+
+
+def invalid(field: str, message: str) -> APIError:
+    return APIError(422, "invalid", f"{field}: {message}", field=field)
+
+
+def conflict(message: str, field: str | None = None) -> APIError:
+    return APIError(409, "conflict", message, field=field)
+
+
+def too_large(field: str, limit: int) -> APIError:
+    return APIError(413, "too_large", f"{field}: upload exceeds the limit of {limit} bytes", field=field)
+
+
+def not_available(message: str) -> APIError:
+    return APIError(501, "not_available", message)
+
+
+def error_body(code: str, message: str, field: str | None = None) -> dict[str, Any]:
+    return {"error": {"code": code, "message": message, "field": field}}
+
+
+def _field_of(loc: tuple[Any, ...] | list[Any]) -> str:
+    parts = [str(p) for p in loc]
+    if parts and parts[0] in ("body", "query", "path", "header", "form", "file"):
+        parts = parts[1:]
+    return ".".join(parts) or "body"
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(APIError)
+    async def _api_error(_: Request, exc: APIError) -> JSONResponse:
+        return JSONResponse(error_body(exc.code, exc.message, exc.field), status_code=exc.status, headers=exc.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(_: Request, exc: RequestValidationError) -> JSONResponse:
+        errs = exc.errors()
+        first = errs[0] if errs else {"loc": (), "msg": "invalid request"}
+        field = _field_of(first.get("loc", ()))
+        message = "; ".join(f"{_field_of(e.get('loc', ()))}: {e.get('msg', '')}" for e in errs[:5])
+        return JSONResponse(error_body("invalid", message, field), status_code=422)
+
+    @app.exception_handler(CSAInputError)
+    async def _input(_: Request, exc: CSAInputError) -> JSONResponse:
+        return JSONResponse(error_body("invalid", f"{exc.where}: {exc.problem}", exc.where), status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+        code = {401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed", 413: "too_large"}.get(exc.status_code, "http_error")
+        return JSONResponse(error_body(code, str(exc.detail)), status_code=exc.status_code, headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(Exception)
+    async def _unexpected(_: Request, exc: Exception) -> JSONResponse:
+        log.exception("unhandled error")
+        return JSONResponse(error_body("internal", f"internal error: {type(exc).__name__}"), status_code=500)

@@ -1,0 +1,39 @@
+"""Segmentation networks loaded for inference, kept by checkpoint checksum (least recently used out)."""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from typing import Any
+
+from server.artifacts import ArtifactStore
+
+
+class ModelCache:
+    def __init__(self, store: ArtifactStore, size: int, device: str | None):
+        self.store = store
+        self.size = max(1, size)
+        self.device = device or "cpu"
+        self._items: OrderedDict[str, tuple[Any, Any]] = OrderedDict()
+        self._lock = threading.Lock()
+        self._inference_lock = threading.Lock()
+
+    def get(self, sha256: str) -> tuple[Any, Any]:
+        """(network in eval mode, model card) of a stored checkpoint."""
+        from csa_core.seg import load_checkpoint
+
+        with self._lock:
+            if sha256 in self._items:
+                self._items.move_to_end(sha256)
+                return self._items[sha256]
+        net, card = load_checkpoint(self.store.open_verified(sha256), device=self.device)
+        with self._lock:
+            self._items[sha256] = (net, card)
+            while len(self._items) > self.size:
+                self._items.popitem(last=False)
+        return net, card
+
+    @property
+    def inference_lock(self) -> threading.Lock:
+        """One prediction at a time: networks are shared and the CPU is small."""
+        return self._inference_lock

@@ -1,0 +1,79 @@
+"""The model registry: segmentation checkpoints as versions with lineage, metrics and a current one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from server.artifacts import ArtifactStore
+from server.db.models import ModelVersion
+
+CHECKPOINT_FILE = "model.safetensors"
+
+
+def set_current(session: Session, model: ModelVersion) -> None:
+    session.execute(update(ModelVersion).where(ModelVersion.id != model.id).values(is_current=False))
+    model.is_current = True
+    session.flush()
+
+
+def register_checkpoint(
+    session: Session,
+    store: ArtifactStore,
+    checkpoint: Path,
+    *,
+    name: str,
+    lineage: str,
+    arch: str,
+    parent_id: int | None = None,
+    adapted_scene_id: int | None = None,
+    job_id: int | None = None,
+    metrics: dict[str, Any] | None = None,
+    meta: dict[str, Any] | None = None,
+    make_current: bool | None = None,
+) -> ModelVersion:
+    """Store a checkpoint file and add its version; ``make_current=None`` makes it current
+    only when no version is current yet."""
+    stored = store.put_file(session, checkpoint, "model")
+    model = ModelVersion(
+        name=name,
+        lineage=lineage,
+        parent_id=parent_id,
+        adapted_scene_id=adapted_scene_id,
+        job_id=job_id,
+        arch=arch,
+        files={CHECKPOINT_FILE: stored.sha256},
+        size_bytes=stored.size_bytes,
+        metrics=metrics or {},
+        meta=meta or {},
+        is_current=False,
+    )
+    session.add(model)
+    session.flush()
+    has_current = session.scalar(select(ModelVersion.id).where(ModelVersion.is_current.is_(True)).limit(1)) is not None
+    if make_current or (make_current is None and not has_current):
+        set_current(session, model)
+    return model
+
+
+def checkpoint_sha(model: ModelVersion) -> str:
+    return model.files[CHECKPOINT_FILE]
+
+
+def lineage_chain(session: Session, lineage: str) -> list[ModelVersion]:
+    """The versions of a lineage from its root along the newest child at each step."""
+    versions = session.scalars(select(ModelVersion).where(ModelVersion.lineage == lineage).order_by(ModelVersion.id)).all()
+    if not versions:
+        return []
+    by_parent: dict[int | None, list[ModelVersion]] = {}
+    ids = {v.id for v in versions}
+    for v in versions:
+        parent = v.parent_id if v.parent_id in ids else None
+        by_parent.setdefault(parent, []).append(v)
+    chain = [by_parent[None][0]]
+    while children := by_parent.get(chain[-1].id):
+        chain.append(children[-1])
+    return chain

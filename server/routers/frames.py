@@ -1,0 +1,264 @@
+"""``/api/v1/scenes/{scene}/frames`` and ``/archive``: upload, list and fetch frames."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, File, Form, Response, UploadFile, status
+from fastapi.responses import FileResponse
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
+
+from csa_core.data.scene_io import frame_names
+from server.archives import ArchiveLimits, UnsafeArchive, extract_archive
+from server.db.models import Frame, Scene
+from server.deps import DbDep, ServicesDep
+from server.errors import APIError, invalid, not_found, too_large
+from server.frame_store import digest_of, next_frame_name, scene_camera, store_frame
+from server.frame_validation import (
+    FrameParts,
+    NonFinitePose,
+    SceneCamera,
+    check_frame_name,
+    validate_frame,
+)
+from server.lookups import get_scene
+from server.schemas.common import ERROR_RESPONSES
+from server.schemas.frames import ArchiveUploadOut, FrameOut, FrameUploadOut, SkippedFrameOut
+
+router = APIRouter(prefix="/scenes/{scene_ref}", tags=["frames"], responses={**ERROR_RESPONSES, 409: ERROR_RESPONSES[422], 413: ERROR_RESPONSES[422]})
+
+_TEXT_LIMIT = 64 * 1024  # pose and intrinsics files are a few hundred bytes
+
+
+def frame_out(f: Frame) -> FrameOut:
+    return FrameOut(
+        id=f.id,
+        scene_id=f.scene_id,
+        name=f.name,
+        pose=f.pose,
+        color_sha256=f.color_sha256,
+        depth_sha256=f.depth_sha256,
+        labels_sha256=f.labels_sha256,
+        has_labels=f.labels_sha256 is not None,
+        created_at=f.created_at,
+    )
+
+
+async def _read(upload: UploadFile | None, field: str, limit: int) -> bytes | None:
+    if upload is None:
+        return None
+    data = await upload.read(limit + 1)
+    if len(data) > limit:
+        raise too_large(field, limit)
+    return data
+
+
+def _text(data: bytes | None, field: str) -> str | None:
+    if data is None:
+        return None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise invalid(field, "must be UTF-8 text (a whitespace-separated matrix)") from None
+
+
+def _store_with_retry(db, services, scene: Scene, name: str, valid, replace: bool):
+    """Store a frame; a concurrent identical upload that won the race counts as a re-upload."""
+    for attempt in range(2):
+        try:
+            outcome = store_frame(db, services.store, scene, name, valid, replace=replace)
+            db.commit()
+            return outcome
+        except IntegrityError:
+            db.rollback()
+            if attempt:
+                raise
+            scene = db.get(Scene, scene.id)
+    raise AssertionError("unreachable")
+
+
+@router.post(
+    "/frames",
+    response_model=FrameUploadOut,
+    status_code=status.HTTP_201_CREATED,
+    summary="upload one posed RGB-D frame (idempotent: the same content again changes nothing)",
+)
+async def upload_frame(
+    scene_ref: str,
+    db: DbDep,
+    services: ServicesDep,
+    response: Response,
+    color: Annotated[UploadFile, File(description="8-bit colour image, PNG or JPEG")],
+    depth: Annotated[UploadFile, File(description="depth, single-channel uint16 PNG in millimetres (0 = none)")],
+    pose: Annotated[UploadFile, File(description="4x4 camera-to-world matrix as text (metres, OpenCV axes)")],
+    intrinsics: Annotated[UploadFile | None, File(description="3x3 or 4x4 colour intrinsics as text; required with a scene's first frame")] = None,
+    depth_intrinsics: Annotated[UploadFile | None, File(description="depth camera intrinsics when depth is another camera")] = None,
+    labels: Annotated[UploadFile | None, File(description="ground-truth NYU40 label PNG, for evaluation and pre-training only")] = None,
+    name: Annotated[str | None, Form(max_length=64, description="frame name (default: the next number)")] = None,
+    replace: Annotated[bool, Form(description="overwrite a stored frame of this name that has other content")] = False,
+) -> FrameUploadOut:
+    scene = get_scene(db, scene_ref)
+    limit = services.settings.max_frame_upload_bytes
+    parts = FrameParts(
+        color=await _read(color, "color", limit) or b"",
+        depth=await _read(depth, "depth", limit) or b"",
+        pose=_text(await _read(pose, "pose", _TEXT_LIMIT), "pose") or "",
+        labels=await _read(labels, "labels", limit),
+        intrinsics=_text(await _read(intrinsics, "intrinsics", _TEXT_LIMIT), "intrinsics"),
+        depth_intrinsics=_text(await _read(depth_intrinsics, "depth_intrinsics", _TEXT_LIMIT), "depth_intrinsics"),
+    )
+    if name is not None:
+        check_frame_name(name)
+    valid = validate_frame(parts, scene_camera(scene), services.settings.max_image_pixels)
+    if name is None:
+        same = db.scalar(select(Frame).where(Frame.scene_id == scene.id, Frame.content_sha256 == digest_of(valid)).limit(1))
+        name = same.name if same is not None else next_frame_name(db, scene.id)
+    outcome = _store_with_retry(db, services, scene, name, valid, replace)
+    if not outcome.created:
+        response.status_code = status.HTTP_200_OK
+    return FrameUploadOut(**frame_out(outcome.frame).model_dump(), created=outcome.created, replaced=outcome.replaced)
+
+
+@router.get("/frames", response_model=list[FrameOut])
+def list_frames(scene_ref: str, db: DbDep) -> list[FrameOut]:
+    scene = get_scene(db, scene_ref)
+    return [frame_out(f) for f in db.scalars(select(Frame).where(Frame.scene_id == scene.id).order_by(Frame.order_key, Frame.name))]
+
+
+def _get_frame(db, scene: Scene, name: str) -> Frame:
+    frame = db.scalar(select(Frame).where(Frame.scene_id == scene.id, Frame.name == name))
+    if frame is None:
+        raise not_found("frame", name)
+    return frame
+
+
+@router.get("/frames/{name}", response_model=FrameOut)
+def show_frame(scene_ref: str, name: str, db: DbDep) -> FrameOut:
+    return frame_out(_get_frame(db, get_scene(db, scene_ref), name))
+
+
+@router.get(
+    "/frames/{name}/{part}",
+    response_class=FileResponse,
+    responses={200: {"content": {"image/png": {}, "image/jpeg": {}}, "description": "the stored file"}},
+)
+def frame_file(scene_ref: str, name: str, part: Literal["color", "depth", "labels"], db: DbDep, services: ServicesDep) -> FileResponse:
+    frame = _get_frame(db, get_scene(db, scene_ref), name)
+    sha = {"color": frame.color_sha256, "depth": frame.depth_sha256, "labels": frame.labels_sha256}[part]
+    if sha is None:
+        raise not_found("labels of frame", name)
+    ext = frame.color_ext if part == "color" else ".png"
+    media = "image/jpeg" if ext == ".jpg" else "image/png"
+    return FileResponse(services.store.open_verified(sha), media_type=media, filename=f"{name}{ext}", headers={"ETag": sha})
+
+
+def _archive_frames(root: Path) -> Path:
+    """The scene folder inside an extracted archive: the root itself or its only folder."""
+    if (root / "color").is_dir():
+        return root
+    subdirs = [p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")]
+    if len(subdirs) == 1 and (subdirs[0] / "color").is_dir():
+        return subdirs[0]
+    raise invalid("archive", "no scene folder inside (expected color/, depth/, pose/ and intrinsic/ at the top or in one folder)")
+
+
+def _read_member(path: Path, field: str, limit: int) -> bytes:
+    if not path.is_file():
+        raise invalid(field, "file missing from the archive")
+    if path.stat().st_size > limit:
+        raise too_large(field, limit)
+    return path.read_bytes()
+
+
+@router.post(
+    "/archive",
+    response_model=ArchiveUploadOut,
+    summary="upload a scene folder as a tar or zip archive (all frames or none)",
+)
+async def upload_archive(
+    scene_ref: str,
+    db: DbDep,
+    services: ServicesDep,
+    archive: Annotated[UploadFile, File(description="tar (optionally gz/bz2/xz) or zip of a scene folder")],
+    replace: Annotated[bool, Form()] = False,
+) -> ArchiveUploadOut:
+    scene = get_scene(db, scene_ref)
+    st = services.settings
+    limits = ArchiveLimits(st.max_archive_members, st.max_archive_member_bytes, st.max_archive_unpacked_bytes, st.max_archive_ratio)
+    tmp = Path(tempfile.mkdtemp(prefix="csa-archive-", dir=services.settings.resolved_work_dir))
+    try:
+        packed = tmp / "upload"
+        size = 0
+        with open(packed, "wb") as out:
+            while chunk := await archive.read(1 << 20):
+                size += len(chunk)
+                if size > st.max_archive_bytes:
+                    raise too_large("archive", st.max_archive_bytes)
+                out.write(chunk)
+        try:
+            root = _archive_frames(extract_archive(packed, tmp / "x", limits))
+        except UnsafeArchive as e:
+            raise invalid("archive", str(e)) from None
+        packed.unlink()
+        color_dir = root / "color"
+        names = frame_names(color_dir)
+        if not names:
+            raise invalid("archive", "color/ holds no .jpg/.png images")
+        intr_file = root / "intrinsic" / "intrinsic_color.txt"
+        dintr_file = root / "intrinsic" / "intrinsic_depth.txt"
+        intr_text = _text(_read_member(intr_file, "archive:intrinsic/intrinsic_color.txt", 65536), "archive:intrinsic/intrinsic_color.txt") if scene.intrinsics is None or intr_file.is_file() else None
+        dintr_text = _text(dintr_file.read_bytes(), "archive:intrinsic/intrinsic_depth.txt") if dintr_file.is_file() else None
+        camera = scene_camera(scene)
+        valid_frames, skipped = [], []
+        limit = st.max_frame_upload_bytes
+        for name in names:
+            check_frame_name(name, f"archive:color/{name}")
+            color_path = next(p for p in (color_dir / f"{name}{e}" for e in (".jpg", ".jpeg", ".png", ".JPG", ".PNG")) if p.is_file())
+            labels_path = root / "label-nyu40" / f"{name}.png"
+            fields = {
+                "color": f"archive:color/{color_path.name}",
+                "depth": f"archive:depth/{name}.png",
+                "pose": f"archive:pose/{name}.txt",
+                "labels": f"archive:label-nyu40/{name}.png",
+                "intrinsics": "archive:intrinsic/intrinsic_color.txt",
+                "depth_intrinsics": "archive:intrinsic/intrinsic_depth.txt",
+            }
+            parts = FrameParts(
+                color=_read_member(color_path, fields["color"], limit),
+                depth=_read_member(root / "depth" / f"{name}.png", fields["depth"], limit),
+                pose=_text(_read_member(root / "pose" / f"{name}.txt", fields["pose"], _TEXT_LIMIT), fields["pose"]) or "",
+                labels=_read_member(labels_path, fields["labels"], limit) if labels_path.is_file() else None,
+                intrinsics=intr_text,
+                depth_intrinsics=dintr_text,
+                fields=fields,
+            )
+            try:
+                valid = validate_frame(parts, camera, st.max_image_pixels)
+            except NonFinitePose as e:
+                skipped.append(SkippedFrameOut(name=name, reason=e.message))
+                continue
+            # Later frames of the archive must agree with the first one, as later uploads would.
+            camera = SceneCamera(
+                intrinsics=camera.intrinsics or valid.intrinsics,
+                depth_intrinsics=camera.depth_intrinsics or valid.depth_intrinsics,
+                depth_size=camera.depth_size or valid.depth_size,
+            )
+            valid_frames.append((name, valid))
+        if not valid_frames:
+            raise invalid("archive", "no frame with a finite pose")
+        added, unchanged, replaced = [], [], []
+        try:
+            for name, valid in valid_frames:
+                outcome = store_frame(db, services.store, scene, name, valid, replace=replace)
+                (added if outcome.created else replaced if outcome.replaced else unchanged).append(name)
+            db.commit()
+        except IntegrityError:
+            db.rollback()
+            raise APIError(409, "conflict", "another upload to this scene ran at the same time; retry") from None
+        return ArchiveUploadOut(scene_id=scene.id, added=added, unchanged=unchanged, replaced=replaced, skipped=skipped)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

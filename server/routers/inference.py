@@ -1,0 +1,85 @@
+"""``/api/v1/predict``: an image in, a NYU40 label map out (PNG), from any model version."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Annotated, Literal
+
+import cv2
+import numpy as np
+from fastapi import APIRouter, File, Form, Request, UploadFile
+from fastapi.responses import Response
+
+from csa_core.data import image_files
+from csa_core.data.label_images import colorize
+from csa_core.errors import CSAInputError
+from server import capabilities
+from server.deps import DbDep, ServicesDep
+from server.errors import invalid, not_available, too_large
+from server.image_headers import image_format, image_size
+from server.lookups import get_model
+from server.registry import checkpoint_sha
+from server.schemas.common import ERROR_RESPONSES
+
+router = APIRouter(tags=["inference"], responses={**ERROR_RESPONSES, 413: ERROR_RESPONSES[422], 501: ERROR_RESPONSES[422]})
+
+
+def _png(img: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+@router.post(
+    "/predict",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}, "description": "uint8 NYU40 ids (format=ids) or the palette picture (format=color)"}},
+    summary="label an RGB image with the current or a named model version",
+)
+async def predict(
+    request: Request,
+    db: DbDep,
+    services: ServicesDep,
+    image: Annotated[UploadFile, File(description="8-bit RGB image, PNG or JPEG")],
+    model: Annotated[str | None, Form(max_length=128, description="model version id or name (default: current)")] = None,
+    format: Annotated[Literal["ids", "color"], Form()] = "ids",
+) -> Response:
+    reason = capabilities.missing_reason("seg")
+    if reason is not None:
+        raise not_available(reason)
+    limit = services.settings.max_inference_upload_bytes
+    data = await image.read(limit + 1)
+    if len(data) > limit:
+        raise too_large("image", limit)
+    version = get_model(db, model)
+    sha, name, version_id = checkpoint_sha(version), version.name, version.id
+    db.close()
+    fmt, size = image_format(data), image_size(data)
+    if fmt is None or size is None:
+        raise invalid("image", "cannot decode image (not a PNG or JPEG file)")
+    if size[0] * size[1] > services.settings.max_image_pixels or min(size) < 1:
+        raise invalid("image", f"image is {size[0]}x{size[1]}, more than the limit of {services.settings.max_image_pixels} pixels")
+    with tempfile.TemporaryDirectory(prefix="csa-predict-") as d:
+        path = Path(d) / f"image{fmt}"
+        path.write_bytes(data)
+        try:
+            rgb = image_files.read_color(path)
+        except CSAInputError as e:
+            raise invalid("image", e.problem) from None
+
+    cache = request.app.state.model_cache
+
+    def run() -> np.ndarray:
+        from csa_core.seg import predict_labels
+
+        net, card = cache.get(sha)
+        with cache.inference_lock:
+            return predict_labels(net, rgb, device=cache.device, size=tuple(card.input_size) if card.input_size else None)
+
+    from starlette.concurrency import run_in_threadpool
+
+    labels = await run_in_threadpool(run)
+    body = _png(labels.astype(np.uint8)) if format == "ids" else _png(cv2.cvtColor(colorize(labels), cv2.COLOR_RGB2BGR))
+    return Response(body, media_type="image/png", headers={"X-CSA-Model-Id": str(version_id), "X-CSA-Model": name})

@@ -1,0 +1,132 @@
+"""``/api/v1/models``: the model registry (list with lineage and metrics, show, register,
+set current, download)."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, File, Form, UploadFile, status
+from fastapi.responses import FileResponse
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from csa_core.errors import CSAInputError
+from server import capabilities
+from server.db.models import Evaluation, ModelVersion, Scene
+from server.deps import DbDep, ServicesDep
+from server.errors import conflict, invalid, not_available, too_large
+from server.lookups import get_model
+from server.registry import checkpoint_sha, register_checkpoint, set_current
+from server.schemas.common import ERROR_RESPONSES, Name
+from server.schemas.models import ModelOut
+
+router = APIRouter(prefix="/models", tags=["models"], responses=ERROR_RESPONSES)
+
+
+def model_out(db: Session, m: ModelVersion) -> ModelOut:
+    children = list(db.scalars(select(ModelVersion.id).where(ModelVersion.parent_id == m.id).order_by(ModelVersion.id)))
+    scene_name = db.scalar(select(Scene.name).where(Scene.id == m.adapted_scene_id)) if m.adapted_scene_id else None
+    evals: dict[str, float | None] = {}
+    for ev, name in db.execute(select(Evaluation, Scene.name).join(Scene, Scene.id == Evaluation.scene_id).where(Evaluation.model_version_id == m.id).order_by(Evaluation.id)):
+        evals[f"{name}/{ev.split}"] = ev.miou
+    return ModelOut(
+        id=m.id,
+        name=m.name,
+        lineage=m.lineage,
+        parent_id=m.parent_id,
+        children=children,
+        adapted_scene_id=m.adapted_scene_id,
+        adapted_scene=scene_name,
+        job_id=m.job_id,
+        arch=m.arch,
+        size_bytes=m.size_bytes,
+        sha256=checkpoint_sha(m),
+        metrics=m.metrics or {},
+        evaluations=evals,
+        is_current=m.is_current,
+        created_at=m.created_at,
+    )
+
+
+@router.get("", response_model=list[ModelOut])
+def list_models(db: DbDep, lineage: str | None = None) -> list[ModelOut]:
+    q = select(ModelVersion).order_by(ModelVersion.id)
+    if lineage is not None:
+        q = q.where(ModelVersion.lineage == lineage)
+    return [model_out(db, m) for m in db.scalars(q)]
+
+
+@router.post(
+    "",
+    response_model=ModelOut,
+    status_code=status.HTTP_201_CREATED,
+    responses={409: ERROR_RESPONSES[422], 413: ERROR_RESPONSES[422], 501: ERROR_RESPONSES[422]},
+    summary="register a segmentation checkpoint (safetensors with a CSA model card) as a new lineage root",
+)
+async def register_model(
+    db: DbDep,
+    services: ServicesDep,
+    checkpoint: Annotated[UploadFile, File(description="CSA segmentation checkpoint (.safetensors)")],
+    name: Annotated[Name, Form()],
+    lineage: Annotated[Name | None, Form(description="default: the model name")] = None,
+    make_current: Annotated[bool | None, Form(description="default: when no model is current yet")] = None,
+) -> ModelOut:
+    reason = capabilities.missing_reason("seg")
+    if reason is not None:
+        raise not_available(reason)
+    from csa_core.seg import read_model_card
+
+    if db.scalar(select(ModelVersion.id).where(ModelVersion.name == name)) is not None:
+        raise conflict(f"a model version named {name!r} exists", field="name")
+    lineage = lineage or name
+    if db.scalar(select(ModelVersion.id).where(ModelVersion.lineage == lineage)) is not None:
+        raise conflict(f"lineage {lineage!r} exists; an uploaded checkpoint starts a new lineage", field="lineage")
+    limit = services.settings.max_model_upload_bytes
+    tmp = Path(tempfile.mkdtemp(prefix="csa-model-", dir=services.settings.resolved_work_dir))
+    try:
+        path = tmp / "model.safetensors"
+        size = 0
+        with open(path, "wb") as out:
+            while chunk := await checkpoint.read(1 << 20):
+                size += len(chunk)
+                if size > limit:
+                    raise too_large("checkpoint", limit)
+                out.write(chunk)
+        try:
+            card = read_model_card(path)
+        except CSAInputError as e:
+            raise invalid("checkpoint", e.problem) from None
+        model = register_checkpoint(
+            db, services.store, path, name=name, lineage=lineage, arch=card.arch, metrics=dict(card.metrics or {}), meta={"task": "upload", "card_created": card.created}, make_current=make_current
+        )
+        db.commit()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return model_out(db, model)
+
+
+@router.get("/{model_ref}", response_model=ModelOut, summary="a model version by id, name or 'current'")
+def show_model(model_ref: str, db: DbDep) -> ModelOut:
+    return model_out(db, get_model(db, model_ref))
+
+
+@router.post("/{model_ref}/current", response_model=ModelOut, summary="make this version the one inference and new jobs use")
+def make_current(model_ref: str, db: DbDep) -> ModelOut:
+    model = get_model(db, model_ref)
+    set_current(db, model)
+    db.commit()
+    return model_out(db, model)
+
+
+@router.get(
+    "/{model_ref}/download",
+    response_class=FileResponse,
+    responses={200: {"content": {"application/octet-stream": {}}, "description": "the checkpoint (safetensors, model card in its header)"}},
+)
+def download_model(model_ref: str, db: DbDep, services: ServicesDep) -> FileResponse:
+    model = get_model(db, model_ref)
+    sha = checkpoint_sha(model)
+    return FileResponse(services.store.open_verified(sha), media_type="application/octet-stream", filename=f"{model.name}.safetensors", headers={"ETag": sha, "X-Checksum-Sha256": sha})

@@ -1,0 +1,86 @@
+"""``/api/v1/scenes/{scene}/render``: colour, depth and labels from a scene's NeRF at any view."""
+
+from __future__ import annotations
+
+import base64
+
+import cv2
+import numpy as np
+from fastapi import APIRouter, Request
+from starlette.concurrency import run_in_threadpool
+
+from csa_core.data.camera import Intrinsics
+from csa_core.data.image_files import depth_to_mm
+from csa_core.data.label_images import colorize
+from server import capabilities
+from server.db.models import NerfCheckpoint
+from server.deps import DbDep, ServicesDep
+from server.errors import invalid, not_available, not_found
+from server.lookups import active_nerf, get_scene
+from server.nerf_cache import NerfCache
+from server.schemas.common import ERROR_RESPONSES
+from server.schemas.rendering import RenderOut, RenderRequest
+
+router = APIRouter(tags=["rendering"], responses={**ERROR_RESPONSES, 501: ERROR_RESPONSES[422]})
+
+MAX_RENDER_PIXELS = 1024 * 1024
+
+
+def _png(img: np.ndarray) -> str:
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return base64.b64encode(buf.tobytes()).decode("ascii")
+
+
+def _check_pose(rows: list[list[float]]) -> np.ndarray:
+    if len(rows) != 4 or any(len(r) != 4 for r in rows):
+        raise invalid("pose", "must be a 4x4 matrix")
+    pose = np.asarray(rows, dtype=np.float64)
+    if not np.all(np.isfinite(pose)):
+        raise invalid("pose", "must be finite")
+    if not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-4):
+        raise invalid("pose", "last row of a camera-to-world pose must be 0 0 0 1")
+    if abs(np.linalg.det(pose[:3, :3])) < 1e-6:
+        raise invalid("pose", "rotation part is singular")
+    return pose
+
+
+@router.post("/scenes/{scene_ref}/render", response_model=RenderOut, summary="render a view of the scene's NeRF")
+async def render(scene_ref: str, body: RenderRequest, request: Request, db: DbDep, services: ServicesDep) -> RenderOut:
+    reason = capabilities.missing_reason("nerf")
+    if reason is not None:
+        raise not_available(reason)
+    pose = _check_pose(body.pose)
+    scene = get_scene(db, scene_ref)
+    if body.nerf_id is not None:
+        nerf = db.get(NerfCheckpoint, body.nerf_id)
+        if nerf is None or nerf.scene_id != scene.id:
+            raise not_found("NeRF", body.nerf_id)
+    else:
+        nerf = active_nerf(db, scene.id)
+        if nerf is None:
+            raise not_found("NeRF of scene", scene.name)
+    if body.intrinsics is not None:
+        intr = Intrinsics(**body.intrinsics.model_dump())
+    elif scene.intrinsics is not None:
+        intr = Intrinsics.from_dict(scene.intrinsics)
+    else:
+        raise invalid("intrinsics", "the scene has no camera; give intrinsics")
+    if intr.width * intr.height > MAX_RENDER_PIXELS:
+        raise invalid("intrinsics", f"{intr.width}x{intr.height} is more than {MAX_RENDER_PIXELS} pixels")
+    files, nerf_id = dict(nerf.files), nerf.id
+    db.close()
+    cache: NerfCache = request.app.state.nerf_cache
+    view = await run_in_threadpool(cache.render, nerf_id, files, pose, intr)
+    images: dict[str, str] = {}
+    for channel in dict.fromkeys(body.channels):
+        if channel == "color":
+            images[channel] = _png(cv2.cvtColor(view["color"], cv2.COLOR_RGB2BGR))
+        elif channel == "depth":
+            images[channel] = _png(depth_to_mm(view["depth"]))
+        elif channel == "labels":
+            images[channel] = _png(view["labels"].astype(np.uint8))
+        else:
+            images[channel] = _png(cv2.cvtColor(colorize(view["labels"]), cv2.COLOR_RGB2BGR))
+    return RenderOut(scene_id=scene.id, nerf_id=nerf_id, width=intr.width, height=intr.height, images=images)

@@ -1,0 +1,73 @@
+"""``/api/v1/scenes``: create, list, show and delete scenes."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response, status
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+
+from server.db.models import Frame, Job, NerfCheckpoint, Scene
+from server.deps import DbDep, ServicesDep
+from server.errors import conflict
+from server.jobs.queue import QUEUED, RUNNING
+from server.lookups import get_scene
+from server.schemas.common import ERROR_RESPONSES, IntrinsicsOut
+from server.schemas.scenes import SceneCreate, SceneOut
+
+router = APIRouter(prefix="/scenes", tags=["scenes"], responses=ERROR_RESPONSES)
+
+
+def scene_out(db, scene: Scene) -> SceneOut:
+    n, labelled = db.execute(select(func.count(Frame.id), func.count(Frame.labels_sha256)).where(Frame.scene_id == scene.id)).one()
+    has_nerf = db.scalar(select(NerfCheckpoint.id).where(NerfCheckpoint.scene_id == scene.id, NerfCheckpoint.active.is_(True)).limit(1)) is not None
+    return SceneOut(
+        id=scene.id,
+        name=scene.name,
+        description=scene.description,
+        intrinsics=IntrinsicsOut(**scene.intrinsics) if scene.intrinsics else None,
+        depth_size=(scene.depth_width, scene.depth_height) if scene.depth_width and scene.depth_height else None,
+        num_frames=int(n),
+        num_labelled_frames=int(labelled),
+        has_nerf=has_nerf,
+        created_at=scene.created_at,
+    )
+
+
+@router.post("", response_model=SceneOut, status_code=status.HTTP_201_CREATED, responses={409: ERROR_RESPONSES[422]})
+def create_scene(body: SceneCreate, db: DbDep) -> SceneOut:
+    if db.scalar(select(Scene.id).where(Scene.name == body.name)) is not None:
+        raise conflict(f"scene {body.name!r} exists", field="name")
+    scene = Scene(name=body.name, description=body.description)
+    db.add(scene)
+    try:
+        db.commit()
+    except IntegrityError:
+        db.rollback()
+        raise conflict(f"scene {body.name!r} exists", field="name") from None
+    return scene_out(db, scene)
+
+
+@router.get("", response_model=list[SceneOut])
+def list_scenes(db: DbDep) -> list[SceneOut]:
+    return [scene_out(db, s) for s in db.scalars(select(Scene).order_by(Scene.id))]
+
+
+@router.get("/{scene_ref}", response_model=SceneOut)
+def show_scene(scene_ref: str, db: DbDep) -> SceneOut:
+    return scene_out(db, get_scene(db, scene_ref))
+
+
+@router.delete("/{scene_ref}", status_code=status.HTTP_204_NO_CONTENT, responses={409: ERROR_RESPONSES[422]})
+def delete_scene(scene_ref: str, db: DbDep, services: ServicesDep) -> Response:
+    """Delete a scene, its frames and its NeRFs; refused while a job for it is queued or running."""
+    scene = get_scene(db, scene_ref)
+    for job in db.scalars(select(Job).where(Job.status.in_([QUEUED, RUNNING]))):
+        p = job.params or {}
+        if p.get("scene_id") == scene.id or scene.id in (p.get("scene_ids") or []) or scene.id in (p.get("val_scene_ids") or []):
+            raise conflict(f"job {job.id} ({job.kind}, {job.status}) uses this scene; cancel it first")
+    db.delete(scene)
+    db.flush()
+    removed = services.store.collect_garbage(db)
+    db.commit()
+    services.store.remove_unrecorded(db, removed)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)

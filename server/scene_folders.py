@@ -1,0 +1,56 @@
+"""Stored scenes as scene folders (the data contract's layout), for the core library to read.
+
+Jobs never read the database's blobs directly: they get a scene folder built from hard links
+into the artifact store and read it with :func:`csa_core.data.read_scene`, so the service
+accepts exactly what the command line accepts.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from csa_core.data import image_files
+from csa_core.data.camera import Intrinsics
+from csa_core.data.scene import NYU40_FOLDER
+from csa_core.errors import CSAInputError
+from server.artifacts import ArtifactStore
+from server.db.models import Frame, Scene
+
+
+def _write_intrinsics(path: Path, intr: Intrinsics) -> None:
+    K = np.eye(4)
+    K[:3, :3] = intr.matrix()
+    image_files.write_matrix(path, K)
+
+
+def write_scene_folder(session: Session, store: ArtifactStore, scene: Scene, dest: Path, ground_truth: bool = False) -> Path:
+    """Write ``scene`` as a scene folder at ``dest`` (a new folder named after the scene).
+
+    ``ground_truth`` adds the uploaded labels as ``label-nyu40``; they are for evaluation and
+    pre-training only, so adaptation and NeRF fitting on predictions never see them.
+    """
+    frames = session.scalars(select(Frame).where(Frame.scene_id == scene.id).order_by(Frame.order_key, Frame.name)).all()
+    if not frames or scene.intrinsics is None:
+        raise CSAInputError(f"scene {scene.name}", "has no frames yet")
+    if ground_truth:
+        unlabelled = [f.name for f in frames if not f.labels_sha256]
+        if unlabelled:
+            raise CSAInputError(f"scene {scene.name}", f"{len(unlabelled)} of {len(frames)} frames have no ground-truth labels (e.g. {unlabelled[0]}); this job needs labels on every frame")
+    root = dest / scene.name
+    for sub in ("color", "depth", "pose", "intrinsic"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    color_cam = Intrinsics.from_dict(scene.intrinsics)
+    _write_intrinsics(root / "intrinsic" / "intrinsic_color.txt", color_cam)
+    if scene.depth_intrinsics:
+        _write_intrinsics(root / "intrinsic" / "intrinsic_depth.txt", Intrinsics.from_dict(scene.depth_intrinsics))
+    for f in frames:
+        store.materialize(f.color_sha256, root / "color" / f"{f.name}{f.color_ext}")
+        store.materialize(f.depth_sha256, root / "depth" / f"{f.name}.png")
+        image_files.write_matrix(root / "pose" / f"{f.name}.txt", np.asarray(f.pose, dtype=np.float64))
+        if ground_truth and f.labels_sha256:
+            store.materialize(f.labels_sha256, root / NYU40_FOLDER / f"{f.name}.png")
+    return root

@@ -1,0 +1,35 @@
+from __future__ import annotations
+
+from pydantic import BaseModel
+
+from server.schemas.common import Timestamp
+
+
+class FrameOut(BaseModel):
+    id: int
+    scene_id: int
+    name: str
+    pose: list[list[float]]
+    color_sha256: str
+    depth_sha256: str
+    labels_sha256: str | None
+    has_labels: bool
+    created_at: Timestamp
+
+
+class FrameUploadOut(FrameOut):
+    created: bool  # false: the same content was already stored (idempotent re-upload)
+    replaced: bool = False
+
+
+class SkippedFrameOut(BaseModel):
+    name: str
+    reason: str
+
+
+class ArchiveUploadOut(BaseModel):
+    scene_id: int
+    added: list[str]
+    unchanged: list[str]
+    replaced: list[str]
+    skipped: list[SkippedFrameOut]

@@ -1,0 +1,24 @@
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from server.schemas.common import IntrinsicsOut, Name, Timestamp
+
+
+class SceneCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: Name
+    description: str = Field(default="", max_length=2000)
+
+
+class SceneOut(BaseModel):
+    id: int
+    name: str
+    description: str
+    intrinsics: IntrinsicsOut | None
+    depth_size: tuple[int, int] | None = None
+    num_frames: int
+    num_labelled_frames: int
+    has_nerf: bool
+    created_at: Timestamp

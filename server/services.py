@@ -1,0 +1,39 @@
+"""The long-lived objects the API and the workers share: settings, database, artifact store."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.artifacts import ArtifactStore
+from server.db.migrate import upgrade_to_head
+from server.db.session import make_engine, make_sessionmaker
+from server.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Services:
+    settings: Settings
+    engine: Engine
+    sessions: sessionmaker[Session]
+    store: ArtifactStore
+    api_keys: list[str] = field(default_factory=list)
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+
+def open_services(settings: Settings) -> Services:
+    """Connect to the database (migrating it when configured) and open the artifact store."""
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    engine = make_engine(settings.resolved_database_url)
+    if settings.migrate_on_start:
+        upgrade_to_head(engine)
+    store = ArtifactStore(settings.resolved_artifact_dir)
+    settings.resolved_work_dir.mkdir(parents=True, exist_ok=True)
+    return Services(settings=settings, engine=engine, sessions=make_sessionmaker(engine), store=store)

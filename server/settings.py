@@ -1,0 +1,78 @@
+"""Every setting of the service, read once from the environment (prefix ``CSA_``) or a .env file."""
+
+from __future__ import annotations
+
+from functools import cached_property
+from pathlib import Path
+from typing import Annotated
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+MiB = 1024 * 1024
+
+
+class Settings(BaseSettings):
+    """Service configuration. ``CSA_DATA_DIR`` holds the SQLite database, the artifact store,
+    job scratch space and the generated API key, unless the individual paths are given."""
+
+    model_config = SettingsConfigDict(env_prefix="CSA_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Path("csa-data")
+    database_url: str | None = None  # default: sqlite file in data_dir; any SQLAlchemy URL works
+    artifact_dir: Path | None = None  # default: data_dir/artifacts
+    work_dir: Path | None = None  # default: data_dir/work (job scratch, removed after each job)
+
+    # Authentication: requests need one of these keys in X-API-Key or "Authorization: Bearer".
+    # With none configured, a random key is generated once and kept in data_dir/api_key.
+    api_keys: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    public_docs: bool = True  # serve /docs and /openapi.json without a key (they hold no data)
+
+    # Upload limits (bytes and counts), checked before anything is stored.
+    max_frame_upload_bytes: int = 64 * MiB
+    max_archive_bytes: int = 1024 * MiB
+    max_archive_members: int = 20_000
+    max_archive_unpacked_bytes: int = 4096 * MiB
+    max_archive_member_bytes: int = 256 * MiB
+    max_archive_ratio: float = 200.0  # zip: uncompressed / compressed size per member
+    max_image_pixels: int = 4096 * 4096
+    max_model_upload_bytes: int = 1024 * MiB
+    max_inference_upload_bytes: int = 32 * MiB
+
+    # Worker.
+    embedded_worker: bool = True  # start a worker thread inside the API process
+    worker_poll_seconds: float = 1.0
+    lease_seconds: float = 30.0  # a running job whose lease is this old belongs to a dead worker
+    heartbeat_seconds: float = 5.0
+    max_attempts: int = 2  # a job lost with its worker this many times fails instead of re-queueing
+    job_log_lines: int = 2000  # log lines kept per job
+
+    # Server-sent events of job progress.
+    sse_poll_seconds: float = 0.5
+    sse_max_seconds: float = 3600.0  # a stream ends after this long; clients reconnect
+
+    migrate_on_start: bool = True
+    device: str = "auto"  # torch device for jobs and inference: auto (CUDA when present), cpu, cuda
+    torch_threads: int | None = None  # torch.set_num_threads for jobs and inference
+    model_cache_size: int = 2  # segmentation networks kept loaded for inference
+
+    @field_validator("api_keys", mode="before")
+    @classmethod
+    def _split_keys(cls, v: object) -> object:
+        if isinstance(v, str):
+            return [k.strip() for k in v.split(",") if k.strip()]
+        return v
+
+    @cached_property
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'csa.db').resolve()}"
+
+    @cached_property
+    def resolved_artifact_dir(self) -> Path:
+        return (self.artifact_dir or self.data_dir / "artifacts").resolve()
+
+    @cached_property
+    def resolved_work_dir(self) -> Path:
+        return (self.work_dir or self.data_dir / "work").resolve()

@@ -1,0 +1,116 @@
+"""Fixtures of the service tests: real uvicorn servers on 127.0.0.1 with a temporary SQLite
+database and artifact folder, a client, and tiny synthetic scene folders."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import uvicorn
+
+from client import CSAClient
+from server.app import create_app
+from server.settings import Settings
+
+API_KEY = "test-key-0123456789"
+SCENE_SIZE = (40, 30)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_settings(data_dir: Path, **overrides: object) -> Settings:
+    """Settings for a test server: fast polling and short leases, one API key."""
+    values: dict[str, object] = {
+        # Explicit values win over CSA_* variables and .env, so tests never touch a real service.
+        "data_dir": data_dir,
+        "database_url": None,
+        "artifact_dir": None,
+        "work_dir": None,
+        "embedded_worker": True,
+        "public_docs": True,
+        "api_keys": [API_KEY],
+        "worker_poll_seconds": 0.1,
+        "heartbeat_seconds": 0.3,
+        "lease_seconds": 3.0,
+        "sse_poll_seconds": 0.1,
+        "torch_threads": 1,
+        "device": "cpu",
+    }
+    values.update(overrides)
+    return Settings(_env_file=None, **values)
+
+
+test_settings.__test__ = False  # a helper, not a test
+
+
+@dataclass
+class LiveServer:
+    url: str
+    settings: Settings
+    server: uvicorn.Server
+    thread: threading.Thread
+
+    @property
+    def services(self):
+        return self.server.config.app.state.services
+
+    def client(self, api_key: str | None = API_KEY, timeout: float = 30.0) -> CSAClient:
+        return CSAClient(self.url, api_key=api_key if api_key is not None else "", timeout=timeout)
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout=60)
+
+
+def start_server(settings: Settings) -> LiveServer:
+    """A real uvicorn server in a thread, bound to 127.0.0.1 on a free port."""
+    port = free_port()
+    app = create_app(settings)
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, name=f"uvicorn-{port}", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            raise RuntimeError("test server did not start")
+        time.sleep(0.02)
+    return LiveServer(f"http://127.0.0.1:{port}", settings, server, thread)
+
+
+@pytest.fixture(scope="module")
+def api_server(tmp_path_factory) -> Iterator[LiveServer]:
+    """A server without a worker (requests only), with small upload limits."""
+    settings = test_settings(
+        tmp_path_factory.mktemp("api"),
+        embedded_worker=False,
+        max_frame_upload_bytes=200_000,
+        max_archive_bytes=2_000_000,
+        max_archive_members=200,
+    )
+    live = start_server(settings)
+    yield live
+    live.stop()
+
+
+@pytest.fixture
+def client(api_server: LiveServer) -> Iterator[CSAClient]:
+    with api_server.client() as c:
+        yield c
+
+
+@pytest.fixture(scope="session")
+def synth_scene(tmp_path_factory) -> Path:
+    """A tiny procedural room: 8 frames of 40x30 with NYU40 ground truth."""
+    from csa_core.data.synth import synthesize
+
+    (path,) = synthesize(tmp_path_factory.mktemp("synth"), scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=3)
+    return path
