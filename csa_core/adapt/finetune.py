@@ -25,7 +25,7 @@ from csa_core.adapt.collapse import GuardDecision, detect_collapse, guard
 from csa_core.adapt.config import AdaptConfig
 from csa_core.adapt.pseudo_labels import PseudoLabels, label_miou, make_pseudo_labels
 from csa_core.adapt.replay import MixedBatchSampler, PretrainReplay, ReplayBuffer
-from csa_core.data.scene import Scene
+from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.nerf.model import SemanticNerf
 from csa_core.seg.adabn import adapt_batchnorm
 from csa_core.seg.config import TrainConfig
@@ -123,7 +123,10 @@ def apply_adabn(
 
 
 def evaluate(model: SegmentationNet, scene: Scene, device: str | None = None) -> dict[str, float]:
-    """mIoU on the scene's validation and training views."""
+    """mIoU on the scene's validation and training views; empty for a scene without ground
+    truth, which is the product's normal case (labels are used only to score, never to train)."""
+    if not any(NYU40_FOLDER in f.labels for f in scene.frames):
+        return {}
     return {
         split: evaluate_scene(model, scene, split, device=device).miou()
         for split in ("val", "train")

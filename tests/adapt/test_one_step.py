@@ -89,3 +89,18 @@ def test_nerf_label_trainer_follows_new_labels(pretrained, target_scenes):
     assert last < first
     assert label_miou(labels, scene) > before
     assert set(np.unique(np.concatenate([v.ravel() for v in labels.values()]))) <= set(range(1, 41))
+
+
+@pytest.mark.parametrize("mode", ["ni_nl", "joint"])
+def test_unlabelled_scene_adapts_without_scores(mode, pretrained, target_scenes):
+    """The product's case: a new scene without any ground truth adapts; scores stay empty."""
+    scene = copy.deepcopy(target_scenes[2])
+    for f in scene.frames:
+        f.labels.clear()
+    model = copy.deepcopy(pretrained)
+    before = [p.detach().clone() for p in model.parameters()]
+    result = adapt_one_step(model, scene, tiny_config(mode))
+    assert result.before == {} and result.after == {}
+    assert math.isnan(result.prediction_miou) and math.isnan(result.pseudo_label_miou)
+    assert result.trained
+    assert any(not torch.equal(a, b) for a, b in zip(before, model.parameters(), strict=True))
