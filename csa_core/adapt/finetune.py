@@ -197,6 +197,38 @@ def finetune_on_labels(
     return [tuner.epoch(dataset, primary, secondary) for _ in range(epochs)]
 
 
+def begin_step(
+    model: SegmentationNet,
+    scene: Scene,
+    config: AdaptConfig,
+    stage: str,
+    prior_entropy: float | None,
+    evaluate_before: bool,
+) -> tuple[OneStepResult, PseudoLabels, dict[str, float]]:
+    """The common start of every mode: score before (optional), fit the NeRF on the network's
+    predictions, render pseudo-labels, check them for collapse at ``stage``."""
+    device = config.seg.device
+    t0 = time.perf_counter()
+    before = evaluate(model, scene, device) if evaluate_before else {}
+    t_eval = time.perf_counter() - t0
+    nerf, pseudo = make_pseudo_labels(model, scene, config.nerf, device)
+    seconds = {"evaluate": t_eval, **pseudo.seconds}
+    decision = check_labels(stage, pseudo.labels, pseudo, config, prior_entropy)
+    pseudo_miou = label_miou(pseudo.labels, scene)
+    result = OneStepResult(
+        scene=scene.name,
+        mode=config.mode,
+        before=before,
+        after={},
+        prediction_miou=label_miou(pseudo.predictions, scene),
+        pseudo_label_miou=pseudo_miou,
+        final_label_miou=pseudo_miou,
+        decisions=[decision],
+        nerf=nerf,
+    )
+    return result, pseudo, seconds
+
+
 def adapt_one_step(
     model: SegmentationNet,
     scene: Scene,
@@ -214,23 +246,8 @@ def adapt_one_step(
 
         return joint_adapt(model, scene, config, replay, pretrain, prior_entropy, evaluate_before)
     device = config.seg.device
-    t0 = time.perf_counter()
-    before = evaluate(model, scene, device) if evaluate_before else {}
-    t_eval = time.perf_counter() - t0
-    nerf, pseudo = make_pseudo_labels(model, scene, config.nerf, device)
-    seconds = {"evaluate": t_eval, **pseudo.seconds}
-    decision = check_labels("pseudo_labels", pseudo.labels, pseudo, config, prior_entropy)
-    result = OneStepResult(
-        scene=scene.name,
-        mode=config.mode,
-        before=before,
-        after={},
-        prediction_miou=label_miou(pseudo.predictions, scene),
-        pseudo_label_miou=label_miou(pseudo.labels, scene),
-        final_label_miou=label_miou(pseudo.labels, scene),
-        decisions=[decision],
-        nerf=nerf,
-    )
+    result, pseudo, seconds = begin_step(model, scene, config, "pseudo_labels", prior_entropy, evaluate_before)
+    decision = result.decisions[0]
     t1 = time.perf_counter()
     if decision.action == "skip":
         result.trained = False

@@ -19,6 +19,7 @@ from csa_core.adapt.finetune import (
     SegFinetuner,
     apply_adabn,
     batches_per_epoch,
+    begin_step,
     check_labels,
     evaluate,
     finetune_on_labels,
@@ -27,7 +28,6 @@ from csa_core.adapt.finetune import (
 from csa_core.adapt.nerf_training import NerfLabelTrainer
 from csa_core.adapt.pseudo_labels import (
     label_miou,
-    make_pseudo_labels,
     predict_frames,
     render_pairs,
 )
@@ -47,29 +47,11 @@ def joint_adapt(
 ) -> OneStepResult:
     """Adapt ``model`` in place to ``scene`` by joint training; see the module docstring."""
     device = config.seg.device
-    t0 = time.perf_counter()
-    before = evaluate(model, scene, device) if evaluate_before else {}
-    t_eval = time.perf_counter() - t0
-    nerf, pseudo = make_pseudo_labels(model, scene, config.nerf, device)
-    seconds = {
-        "evaluate": t_eval,
-        **pseudo.seconds,
-        "joint_seg": 0.0,
-        "joint_nerf": 0.0,
-        "joint_render": 0.0,
-    }
-    decision = check_labels("prefit", pseudo.labels, pseudo, config, prior_entropy)
-    result = OneStepResult(
-        scene=scene.name,
-        mode="joint",
-        before=before,
-        after={},
-        prediction_miou=label_miou(pseudo.predictions, scene),
-        pseudo_label_miou=label_miou(pseudo.labels, scene),
-        final_label_miou=label_miou(pseudo.labels, scene),
-        decisions=[decision],
-        nerf=nerf,
-    )
+    result, pseudo, seconds = begin_step(model, scene, config, "prefit", prior_entropy, evaluate_before)
+    result.mode = "joint"
+    seconds.update(joint_seg=0.0, joint_nerf=0.0, joint_render=0.0)
+    decision = result.decisions[0]
+    nerf = result.nerf
     camera = pseudo.images(False)
     if decision.action == "skip":
         result.trained = False

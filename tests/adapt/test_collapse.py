@@ -86,7 +86,6 @@ def _collapsed_renders(nerf, scene):
 @pytest.mark.parametrize("mode", ["ni_nl", "joint"])
 def test_guard_keeps_the_network_from_collapsing(mode, pretrained, target_scenes, monkeypatch):
     monkeypatch.setattr(finetune, "make_pseudo_labels", _collapsed_pseudo_labels)
-    monkeypatch.setattr("csa_core.adapt.joint.make_pseudo_labels", _collapsed_pseudo_labels)
     monkeypatch.setattr("csa_core.adapt.joint.render_pairs", _collapsed_renders)
     scene = target_scenes[1]
     images = [f.color for f in scene.frames]
