@@ -6,8 +6,7 @@ defaults) loads without torch.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from csa_core.lazy_exports import lazy_exports
 
 _EXPORTS = {
     "adabn": ("adapt_batchnorm", "batchnorm_layers", "recompute_batchnorm"),
@@ -24,16 +23,4 @@ _EXPORTS = {
     "train": ("SegmentationTrainer", "TrainResult", "train_segmentation"),
     "transforms": ("JointAugment",),
 }  # fmt: skip
-_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name: str) -> Any:
-    module = _WHERE.get(name)
-    if module is None:
-        raise AttributeError(f"module 'csa_core.seg' has no attribute {name!r}")
-    return getattr(importlib.import_module(f"csa_core.seg.{module}"), name)
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *__all__])
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

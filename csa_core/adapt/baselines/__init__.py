@@ -5,8 +5,7 @@ Names are imported lazily, so the Mapping code and the configs load without torc
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from csa_core.lazy_exports import lazy_exports
 
 _EXPORTS = {
     "voxel_map": ("PAPER_VOXEL_SIZE", "VoxelMapConfig", "VoxelSemanticMap"),
@@ -17,16 +16,4 @@ _EXPORTS = {
     ),
     "cotta": ("CoTTA", "CoTTAConfig", "CoTTAFootprint", "cotta_adapt", "module_bytes"),
 }  # fmt: skip
-_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name: str) -> Any:
-    module = _WHERE.get(name)
-    if module is None:
-        raise AttributeError(f"module 'csa_core.adapt.baselines' has no attribute {name!r}")
-    return getattr(importlib.import_module(f"csa_core.adapt.baselines.{module}"), name)
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *__all__])
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
