@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-import torch
 
 from csa_core.adapt.config import AdaptConfig, preset
 from csa_core.data.scene import Scene
@@ -41,25 +40,10 @@ def pretrained(source_scenes) -> SegmentationNet:
     from csa_core.seg.config import PretrainConfig, TrainConfig
     from csa_core.seg.pretraining import pretrain
 
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        config = PretrainConfig(
-            size=SIZE,
-            train=TrainConfig(
-                epochs=4, batch_size=4, progress=False, precise_bn_images=16, device="cpu"
-            ),
-        )
-        model, _ = pretrain(source_scenes, config)
-    finally:
-        torch.set_num_threads(threads)
+    config = PretrainConfig(
+        size=SIZE,
+        train=TrainConfig(epochs=4, batch_size=4, progress=False, precise_bn_images=16, device="cpu"),
+    )
+    model, _ = pretrain(source_scenes, config)
     return model
 
-
-@pytest.fixture(autouse=True, scope="package")
-def _one_torch_thread():
-    """Tiny networks and NeRFs gain nothing from threads on a shared CPU."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from csa_core.data.camera import Intrinsics
 from csa_core.data.scene import Frame, Scene
@@ -63,11 +62,3 @@ def make_pattern_scene(
 def pattern_scene() -> Scene:
     return make_pattern_scene()
 
-
-@pytest.fixture(autouse=True, scope="package")
-def _one_torch_thread():
-    """Tiny networks gain nothing from threads, and on a shared CPU extra threads stall."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
