@@ -7,15 +7,24 @@ Examples (run from the repository root):
     python benchmarks/nerf_bench.py --scene synth:apartment:3 --frames 60 --size 80x60 --noise
     python benchmarks/nerf_bench.py --scene synth:apartment:3 --presets fast,reference --steps 400
 
-Held-out = the scene's validation frames (last 20%). On synthetic scenes with ``--noise`` the
-labels fused are corrupted per frame (``csa_core.nerf.label_noise``) and the table reports mIoU
-vs ground truth of the corrupted inputs and of the labels rendered at the training views.
+    python benchmarks/nerf_bench.py --scene 7scenes:../shared/data/7scenes-kitchen-100 --size 160x120 \
+        --color-camera kinect --appearance affine --holdout every:5
+
+Held-out (``--holdout``): ``tail`` = the scene's validation frames (last 20% of the trajectory,
+the project's protocol); ``every:N`` = every N-th frame (interleaved, the usual NeRF protocol),
+training on the others. ``--color-camera kinect`` moves 7-Scenes frames to the Kinect colour
+camera (``csa_core.nerf.registration``). On synthetic scenes with ``--noise`` the labels fused
+are corrupted per frame (``csa_core.nerf.label_noise``) and the table reports mIoU vs ground
+truth of the corrupted inputs and of the labels rendered at the training and held-out views.
+``--reload`` renders everything from the checkpoint written in the storage dtype and read back.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import platform
+import tempfile
 import time
 from pathlib import Path
 
@@ -23,10 +32,17 @@ import numpy as np
 import torch
 
 from csa_core.eval.miou import ConfusionMatrix
-from csa_core.nerf.checkpoint import checkpoint_bytes
-from csa_core.nerf.config import preset
+from csa_core.nerf.appearance import nearest_frame
+from csa_core.nerf.checkpoint import checkpoint_bytes, load_checkpoint, save_checkpoint
+from csa_core.nerf.config import NerfConfig, preset
 from csa_core.nerf.fit import fit_semantic_nerf
 from csa_core.nerf.label_noise import corrupt_labels
+from csa_core.nerf.registration import (
+    KINECT_V1_COLOR,
+    color_consistency_rms,
+    estimate_color_camera,
+    to_color_camera,
+)
 from csa_core.nerf.render import render_image
 
 
@@ -52,8 +68,61 @@ def psnr(mse: float) -> float:
     return float("inf") if mse <= 0 else -10.0 * np.log10(mse)
 
 
+def split_frames(scene, holdout: str):
+    """(training, held-out) frames: ``tail`` = the scene's split, ``every:N`` = every N-th frame
+    (starting at N // 2) held out."""
+    if holdout == "tail":
+        return scene.train_frames, scene.val_frames
+    kind, _, n = holdout.partition(":")
+    if kind != "every" or not n.isdigit() or int(n) < 2:
+        raise SystemExit(f"unknown --holdout {holdout!r} (tail or every:N, N >= 2)")
+    n = int(n)
+    held = set(range(n // 2, len(scene.frames), n))
+    return (
+        [f for i, f in enumerate(scene.frames) if i not in held],
+        [f for i, f in enumerate(scene.frames) if i in held],
+    )
+
+
+def apply_overrides(cfg: NerfConfig, items: list[str]) -> None:
+    """``section.name=value`` assignments (Python literals) on a config, e.g. ``sampler.spread_samples=16``."""
+    for item in items:
+        key, _, value = item.partition("=")
+        *path, name = key.split(".")
+        obj = cfg
+        for part in path:
+            obj = getattr(obj, part)
+        if not hasattr(obj, name):
+            raise SystemExit(f"--set {item!r}: no config field {key!r}")
+        old = getattr(obj, name)
+        new = value if isinstance(old, str) else ast.literal_eval(value)
+        setattr(obj, name, type(old)(new) if isinstance(old, (int, float)) else new)
+
+
+def color_camera(scene, spec: str):
+    """The scene at its colour camera (``kinect``: the measured Kinect v1 camera, ``estimate``:
+    searched from it on this scene) and a description, or the scene unchanged for ``none``."""
+    if spec == "none":
+        return scene, "depth camera"
+    cam = KINECT_V1_COLOR
+    if spec == "estimate":
+        cam, _ = estimate_color_camera(scene, KINECT_V1_COLOR)
+    elif spec != "kinect":
+        raise SystemExit(f"unknown --color-camera {spec!r} (none, kinect, estimate)")
+    before, after = color_consistency_rms(scene, None), color_consistency_rms(scene, cam)
+    k = cam.intrinsics
+    desc = (
+        f"colour camera f={k.fx:.1f} c=({k.cx:.1f}, {k.cy:.1f}) at {k.width}x{k.height}, "
+        f"offset {cam.offset} m; multi-view colour RMS {before:.1f} -> {after:.1f}"
+    )
+    return to_color_camera(scene, cam), desc
+
+
 def run(args: argparse.Namespace) -> list[dict]:
     scene, has_gt = load_scene(args.scene, args.size, args.frames)
+    scene, cam_desc = color_camera(scene, args.color_camera)
+    print(f"camera: {cam_desc}")
+    train, held_out = split_frames(scene, args.holdout)
     labels = None
     if has_gt:
         labels = "label-nyu40"
@@ -69,8 +138,19 @@ def run(args: argparse.Namespace) -> list[dict]:
             cfg.optim.rays_per_step = args.rays
         if args.log2_table:
             cfg.field.encoding.log2_table_size = args.log2_table
+        if args.appearance:
+            cfg.appearance = args.appearance
+        if args.storage_dtype:
+            cfg.storage_dtype = args.storage_dtype
+        apply_overrides(cfg, args.set)
         nerf, stats = fit_semantic_nerf(
-            scene, labels, cfg, device=args.device, steps=args.steps, progress=not args.quiet
+            scene,
+            labels,
+            cfg,
+            device=args.device,
+            frames=train,
+            steps=args.steps,
+            progress=not args.quiet,
         )
         row = {
             "preset": name,
@@ -80,54 +160,85 @@ def run(args: argparse.Namespace) -> list[dict]:
             "samples_s": stats.samples_per_second,
             "occupied": stats.occupied_fraction,
         }
-        # Held-out colour and depth.
-        val = scene.val_frames[:: args.val_every]
-        mses, derr, times = [], [], []
-        for f in val:
-            t0 = time.perf_counter()
-            v = render_image(nerf, f.pose, scene.intrinsics, semantics=labels is not None)
-            times.append(time.perf_counter() - t0)
-            mses.append(float(np.mean((v.color.astype(np.float64) - f.color) ** 2) / 255.0**2))
-            if f.depth is not None and (f.depth > 0).any():
-                m = f.depth > 0
-                derr.append(float(np.mean(np.abs(v.depth[m] - f.depth[m]))))
-        row["val_psnr"] = psnr(float(np.mean(mses)))
-        row["val_depth_l1_m"] = float(np.mean(derr)) if derr else float("nan")
-        row["render_s_per_img"] = float(np.mean(times))
-        # Labels at the training views.
-        if labels is not None:
-            cm_in, cm_out, cm_vs_in = ConfusionMatrix(), ConfusionMatrix(), ConfusionMatrix()
-            for f in scene.train_frames[:: args.label_every]:
-                v = render_image(nerf, f.pose, scene.intrinsics)
-                gt = f.labels["label-nyu40"]
-                cm_in.update(f.labels[labels], gt)
-                cm_out.update(v.labels, gt)
-                cm_vs_in.update(v.labels, f.labels[labels])
-            row["miou_input"] = cm_in.miou()
-            row["miou_rendered"] = cm_out.miou()
-            row["miou_rendered_vs_input"] = cm_vs_in.miou()
         row["ckpt_fp16_mb"] = len(checkpoint_bytes(nerf, "float16")) / 1e6
         row["ckpt_fp32_mb"] = len(checkpoint_bytes(nerf, "float32")) / 1e6
         if args.save:
             out = Path(args.save) / f"{scene.name}-{name}.safetensors"
             out.parent.mkdir(parents=True, exist_ok=True)
-            out.write_bytes(checkpoint_bytes(nerf))
+            save_checkpoint(nerf, out)
+        if args.reload:  # everything below renders the checkpoint as stored, read back
+            with tempfile.TemporaryDirectory() as tmp:
+                path = Path(tmp) / "nerf.safetensors"
+                save_checkpoint(nerf, path)
+                nerf = load_checkpoint(path, device=nerf.device)
+            row["ckpt"] = cfg.storage_dtype
+
+        # Held-out colour and depth. With per-frame colour corrections, held-out views render
+        # with none (the field's average appearance) and, second, with the nearest training frame's.
+        val = held_out[:: args.val_every]
+        mses, near_mses, derr, times = [], [], [], []
+        for f in val:
+            t0 = time.perf_counter()
+            v = render_image(nerf, f.pose, scene.intrinsics, semantics=False)
+            times.append(time.perf_counter() - t0)
+            mses.append(float(np.mean((v.color.astype(np.float64) - f.color) ** 2) / 255.0**2))
+            if f.depth is not None and (f.depth > 0).any():
+                m = f.depth > 0
+                derr.append(float(np.mean(np.abs(v.depth[m] - f.depth[m]))))
+            if nerf.appearance is not None:
+                k = nearest_frame(nerf.info.train_poses, f.pose)
+                c = render_image(nerf, f.pose, scene.intrinsics, semantics=False, appearance=k)
+                near_mses.append(np.mean((c.color.astype(np.float64) - f.color) ** 2) / 255.0**2)
+        row["val_psnr"] = psnr(float(np.mean(mses)))
+        if near_mses:
+            row["val_psnr_nearest"] = psnr(float(np.mean(near_mses)))
+        row["val_depth_l1_m"] = float(np.mean(derr)) if derr else float("nan")
+        row["render_s_per_img"] = float(np.mean(times))
+        # Training views, rendered with their own colour correction.
+        if args.train_psnr_every:
+            mses = []
+            for f in train[:: args.train_psnr_every]:
+                i = nerf.info.train_frames.index(f.name)
+                v = render_image(nerf, f.pose, scene.intrinsics, semantics=False, appearance=i)
+                mses.append(float(np.mean((v.color.astype(np.float64) - f.color) ** 2) / 255.0**2))
+            row["train_psnr"] = psnr(float(np.mean(mses)))
+        # Labels at the training views and at the held-out views.
+        if labels is not None:
+            cm_in, cm_out, cm_vs_in, cm_val = (ConfusionMatrix() for _ in range(4))
+            for f in train[:: args.label_every]:
+                v = render_image(nerf, f.pose, scene.intrinsics)
+                gt = f.labels["label-nyu40"]
+                cm_in.update(f.labels[labels], gt)
+                cm_out.update(v.labels, gt)
+                cm_vs_in.update(v.labels, f.labels[labels])
+            for f in val:
+                cm_val.update(
+                    render_image(nerf, f.pose, scene.intrinsics).labels, f.labels["label-nyu40"]
+                )
+            row["miou_input"] = cm_in.miou()
+            row["miou_rendered"] = cm_out.miou()
+            row["miou_rendered_vs_input"] = cm_vs_in.miou()
+            row["miou_val"] = cm_val.miou()
         rows.append(row)
     return rows
 
 
 COLUMNS = [
     ("preset", "{}"),
+    ("ckpt", "{}"),
     ("steps", "{}"),
     ("fit_s", "{:.0f}"),
     ("rays_s", "{:,.0f}"),
     ("samples_s", "{:,.0f}"),
     ("render_s_per_img", "{:.2f}"),
     ("val_psnr", "{:.2f}"),
+    ("val_psnr_nearest", "{:.2f}"),
     ("val_depth_l1_m", "{:.3f}"),
+    ("train_psnr", "{:.2f}"),
     ("miou_input", "{:.3f}"),
     ("miou_rendered", "{:.3f}"),
     ("miou_rendered_vs_input", "{:.3f}"),
+    ("miou_val", "{:.3f}"),
     ("ckpt_fp16_mb", "{:.2f}"),
     ("ckpt_fp32_mb", "{:.2f}"),
 ]
@@ -156,6 +267,27 @@ def main() -> None:
     p.add_argument(
         "--noise", action="store_true", help="fuse per-frame corrupted labels (synthetic scenes)"
     )
+    p.add_argument(
+        "--holdout",
+        default="tail",
+        help="held-out frames: tail (last 20%%) or every:N (interleaved)",
+    )
+    p.add_argument(
+        "--color-camera",
+        default="none",
+        help="7-Scenes colour camera: none (read colour with the depth camera), kinect, estimate",
+    )
+    p.add_argument("--appearance", default=None, help="per-frame colour correction: none, affine")
+    p.add_argument("--storage-dtype", default=None, help="checkpoint dtype: float16 or float32")
+    p.add_argument(
+        "--reload", action="store_true", help="evaluate the checkpoint written and read back"
+    )
+    p.add_argument(
+        "--set", action="append", default=[], help="config override, e.g. loss.free_space=0.5"
+    )
+    p.add_argument(
+        "--train-psnr-every", type=int, default=0, help="also PSNR of every N-th training view"
+    )
     p.add_argument("--val-every", type=int, default=1, help="evaluate every N-th held-out frame")
     p.add_argument(
         "--label-every", type=int, default=1, help="evaluate labels on every N-th training frame"
@@ -170,8 +302,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     rows = run(args)
     print(
-        f"\nscene {args.scene} at {args.size[0]}x{args.size[1]}, torch {torch.__version__}, "
-        f"{platform.machine()} {torch.get_num_threads()} threads, device {args.device}"
+        f"\nscene {args.scene} at {args.size[0]}x{args.size[1]}, holdout {args.holdout}, "
+        f"torch {torch.__version__}, {platform.machine()} {torch.get_num_threads()} threads, "
+        f"device {args.device}"
     )
     print(table(rows))
 

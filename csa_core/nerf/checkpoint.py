@@ -1,8 +1,9 @@
 """Checkpoints for the memory bank: one safetensors file, tensors + JSON metadata.
 
 The file holds the field's parameters (float32 or float16), the occupancy grid (bit-packed),
-the training poses, and in the safetensors header a JSON document with the config, the scene
-box, the camera, the class list and the scene id, so loading needs nothing but the file.
+the training poses, the per-frame colour corrections if the model has them (float32), and in
+the safetensors header a JSON document with the config, the scene box, the camera, the class
+list and the scene id, so loading needs nothing but the file.
 Never pickle: a checkpoint is data, not code.
 """
 
@@ -28,6 +29,7 @@ VERSION = 1
 _FIELD_PREFIX = "field."
 _GRID_KEY = "occupancy_bits"
 _POSES_KEY = "train_poses"
+_APPEARANCE_KEY = "appearance"
 
 
 def checkpoint_bytes(nerf: SemanticNerf, dtype: str | None = None) -> bytes:
@@ -42,6 +44,8 @@ def checkpoint_bytes(nerf: SemanticNerf, dtype: str | None = None) -> bytes:
     bits = np.packbits(nerf.grid.occupied.detach().cpu().numpy().reshape(-1))
     tensors[_GRID_KEY] = torch.from_numpy(bits)
     tensors[_POSES_KEY] = torch.as_tensor(np.asarray(nerf.info.train_poses, dtype=np.float64))
+    if nerf.appearance is not None:  # 6 numbers per training frame, kept in float32
+        tensors[_APPEARANCE_KEY] = nerf.appearance.params.detach().to("cpu", torch.float32)
     meta = {
         "format": FORMAT,
         "version": VERSION,
@@ -107,6 +111,10 @@ def _from_bytes(data: bytes) -> SemanticNerf:
         if k.startswith(_FIELD_PREFIX)
     }
     nerf.field.load_state_dict(state, strict=True)
+    if nerf.appearance is not None:
+        if _APPEARANCE_KEY not in tensors:
+            raise CSAInputError("checkpoint", "config has per-frame appearance but no tensor")
+        nerf.appearance.params.data.copy_(tensors[_APPEARANCE_KEY].float())
     r = int(meta["occupancy_resolution"])
     bits = np.unpackbits(tensors[_GRID_KEY].numpy())[: r**3]
     if bits.size != r**3:

@@ -114,6 +114,9 @@ class NerfConfig:
     loss: LossConfig = _field(default_factory=LossConfig)
     optim: OptimConfig = _field(default_factory=OptimConfig)
     storage_dtype: Literal["float32", "float16"] = "float32"  # checkpoint tensors
+    # Ours (NeRF-W / nerfacto idea, not in the paper): "affine" = a per-training-frame colour
+    # gain and bias that absorbs auto exposure and white balance (appearance.py).
+    appearance: Literal["none", "affine"] = "none"
     render_chunk: int = 8192  # rays per chunk when rendering
     seed: int = 0
 
@@ -133,6 +136,7 @@ class NerfConfig:
             loss=LossConfig(**d["loss"]),
             optim=OptimConfig(**optim),
             storage_dtype=d["storage_dtype"],
+            appearance=d.get("appearance", "none"),
             render_chunk=d["render_chunk"],
             seed=d["seed"],
         )

@@ -27,6 +27,7 @@ from csa_core.nerf.losses import free_space_loss, psnr, total_loss
 from csa_core.nerf.model import SceneInfo, SemanticNerf
 from csa_core.nerf.normalization import scene_box_from_frames
 from csa_core.nerf.rendering import RaySamples
+from csa_core.progress import ProgressCallback
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +103,7 @@ class _RayData:
     def batch(self, ids: Tensor) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
         cam, pix = ids // self.hw, ids % self.hw
         dirs = torch.einsum("nij,nj->ni", self.rot[cam], self.dirs_cam[pix])
-        target = {"rgb": self.rgb[ids].float() / 255.0, "depth": self.depth[ids]}
+        target = {"rgb": self.rgb[ids].float() / 255.0, "depth": self.depth[ids], "frame": cam}
         if self.labels is not None:
             target["labels"] = self.labels[ids]
         return self.origin[cam], dirs, target
@@ -153,6 +154,8 @@ def _make_optimizer(nerf: SemanticNerf, cfg: NerfConfig) -> torch.optim.Optimize
         for n, p in nerf.field.named_parameters()
         if not (n.startswith("encoding.") or n == "semantic_table")
     ]
+    if nerf.appearance is not None:  # per-frame colour corrections: no decay, like the tables
+        tables += list(nerf.appearance.parameters())
     groups = [
         {"params": tables, "weight_decay": 0.0},
         {"params": mlp, "weight_decay": o.weight_decay_mlp},
@@ -173,6 +176,7 @@ def fit_semantic_nerf(
     steps: int | None = None,
     progress: bool = True,
     callback: Callable[[int, dict[str, float]], None] | None = None,
+    on_progress: ProgressCallback | None = None,
 ) -> tuple[SemanticNerf, FitStats]:
     """Fit a Semantic-NeRF to ``frames`` (default: the scene's training frames) and the labels of
     ``label_folder`` (``None``: colour and depth only).
@@ -180,7 +184,8 @@ def fit_semantic_nerf(
     ``config`` is a :class:`NerfConfig` or a preset name; ``steps`` overrides its step count.
     ``device``: ``None``/``"auto"`` picks CUDA when available. Returns the model (on ``device``,
     occupancy grid estimated) and the fit's statistics. ``callback(step, metrics)`` is called
-    every 50 steps.
+    every 50 steps; ``on_progress(message, fraction)`` (:mod:`csa_core.progress`) every 10
+    steps and after the last. What either raises propagates unchanged and ends the fit.
     """
     cfg = preset(config) if isinstance(config, str) else config
     dev = resolve_device(device)
@@ -237,7 +242,9 @@ def fit_semantic_nerf(
         samples = nerf.sample(
             origins, dirs, train_sampler, depth=target["depth"], stratified=True, generator=dgen
         )
-        out = nerf.render_samples(origins, dirs, samples, semantics="labels" in target)
+        out = nerf.render_samples(
+            origins, dirs, samples, semantics="labels" in target, appearance=target["frame"]
+        )
         if cfg.loss.free_space > 0 and train_sampler == "depth":
             # Ramped in after a warm-up: carving before surfaces exist can kill the density (exp saturates at 0).
             warm = cfg.loss.free_space_warmup * n_steps
@@ -259,6 +266,11 @@ def fit_semantic_nerf(
                 bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}")
             if callback is not None and step % 50 == 0:
                 callback(step, metrics)
+            if on_progress is not None:
+                on_progress(
+                    f"NeRF step {step + 1}/{n_steps}  loss {metrics['loss']:.4f}",
+                    (step + 1) / n_steps,
+                )
         if bar is not None:
             bar.update(1)
     nerf.eval()

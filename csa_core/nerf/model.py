@@ -14,6 +14,7 @@ from torch import Tensor, nn
 
 from csa_core.data.camera import Intrinsics
 from csa_core.data.nyu40 import CLASS_NAMES
+from csa_core.nerf.appearance import FrameAppearance
 from csa_core.nerf.config import NerfConfig
 from csa_core.nerf.field import SemanticField
 from csa_core.nerf.normalization import SceneBox
@@ -81,6 +82,9 @@ class SemanticNerf(nn.Module):
         self.box = box
         self.info = info
         self.field = SemanticField(config.field, generator=generator)
+        self.appearance = (
+            FrameAppearance(len(info.train_frames)) if config.appearance == "affine" else None
+        )
         s = config.sampler
         self.grid = OccupancyGrid(s.occupancy_resolution, s.occupancy_threshold, s.march_steps)
 
@@ -153,18 +157,28 @@ class SemanticNerf(nn.Module):
         )
 
     def render_samples(
-        self, origins: Tensor, dirs: Tensor, samples: RaySamples, semantics: bool = True
+        self,
+        origins: Tensor,
+        dirs: Tensor,
+        samples: RaySamples,
+        semantics: bool = True,
+        appearance: Tensor | int | None = None,
     ) -> dict[str, Tensor]:
         """Evaluate the field at ``samples`` and composite: ``rgb`` (R, 3), ``depth`` (R,),
-        ``opacity`` (R,), and with ``semantics`` the class distribution ``semantics`` (R, C)."""
+        ``opacity`` (R,), and with ``semantics`` the class distribution ``semantics`` (R, C).
+        ``appearance``: training frame index (one, or (R,) per ray) whose colour correction
+        applies to ``rgb``; ``None`` (or a model without corrections): the average appearance."""
         ri = samples.ray_indices
         t = samples.t_mids
         pts = origins[ri] + dirs[ri] * t[:, None]
         view = torch.nn.functional.normalize(dirs, dim=-1)[ri]
         out = self.field(self.box.to_unit(pts), view, semantics=semantics)
         weights, _, _ = render_weights(out["sigma"], samples, dirs.norm(dim=-1))
+        rgb = accumulate_along_rays(weights, out["rgb"], samples)
+        if self.appearance is not None:
+            rgb = self.appearance(rgb, appearance)
         result = {
-            "rgb": accumulate_along_rays(weights, out["rgb"], samples),
+            "rgb": rgb,
             "depth": accumulate_along_rays(weights, t[:, None], samples).squeeze(-1),
             "opacity": accumulate_along_rays(weights, None, samples).squeeze(-1),
             "weights": weights,
@@ -183,8 +197,10 @@ class SemanticNerf(nn.Module):
         depth: Tensor | None = None,
         semantics: bool = True,
         chunk: int | None = None,
+        appearance: int | None = None,
     ) -> dict[str, Tensor]:
-        """Render rays for inference (no gradients), in chunks; ``sampler`` defaults to the config's."""
+        """Render rays for inference (no gradients), in chunks; ``sampler`` defaults to the config's,
+        ``appearance`` is a training frame whose colour correction applies (``None``: average)."""
         sampler = sampler or self.config.sampler.render
         chunk = chunk or self.config.render_chunk
         parts: list[dict[str, Tensor]] = []
@@ -193,7 +209,9 @@ class SemanticNerf(nn.Module):
                 o, d = origins[i : i + chunk], dirs[i : i + chunk]
                 dd = depth[i : i + chunk] if depth is not None else None
                 samples = self.sample(o, d, sampler, depth=dd)
-                parts.append(self.render_samples(o, d, samples, semantics=semantics))
+                parts.append(
+                    self.render_samples(o, d, samples, semantics=semantics, appearance=appearance)
+                )
         if not parts:
             return {}
         return {k: torch.cat([p[k] for p in parts]) for k in parts[0] if k != "weights"}

@@ -121,11 +121,16 @@ def render_image(
     name: str = "",
     semantics: bool = True,
     sampler: str | None = None,
+    appearance: int | None = None,
 ) -> RenderedView:
-    """Render one camera (default: the training camera) at a camera-to-world ``pose``."""
+    """Render one camera (default: the training camera) at a camera-to-world ``pose``.
+    ``appearance``: index of the training frame whose colour correction to apply (models fitted
+    with ``appearance="affine"``); ``None`` renders the average appearance."""
     intr = intrinsics or nerf.info.intrinsics
     origins, dirs = image_rays(intr, pose, nerf.device)
-    out = nerf.render_rays(origins, dirs, sampler=sampler, semantics=semantics)
+    out = nerf.render_rays(
+        origins, dirs, sampler=sampler, semantics=semantics, appearance=appearance
+    )
     h, w = intr.height, intr.width
     color = (out["rgb"].clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).reshape(h, w, 3).cpu().numpy()
     depth = out["depth"].reshape(h, w).float().cpu().numpy()
