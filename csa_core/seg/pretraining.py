@@ -8,6 +8,7 @@ from pathlib import Path
 
 from csa_core.data.scene import Scene
 from csa_core.errors import CSAInputError
+from csa_core.progress import ProgressCallback
 from csa_core.seg.checkpoint import ModelCard
 from csa_core.seg.config import PretrainConfig
 from csa_core.seg.dataset import SegmentationDataset
@@ -22,6 +23,7 @@ def pretrain(
     out: str | Path | None = None,
     val_scenes: Sequence[Scene] | None = None,
     weights: str | Path | None = None,
+    on_progress: ProgressCallback | None = None,
 ) -> tuple[SegmentationNet, TrainResult]:
     """Train a fresh network on labelled scenes and keep the best one on the validation views.
 
@@ -29,7 +31,8 @@ def pretrain(
     on each scene's validation views (DESIGN.md split). With ``val_scenes`` it trains on all
     views of ``train_scenes`` and is scored on the validation views of ``val_scenes``.
     ``weights`` is an optional local safetensors file to start from (torchvision names).
-    The checkpoint at ``out`` records the config and the scenes used.
+    The checkpoint at ``out`` records the config and the scenes used. ``on_progress`` is
+    :func:`~csa_core.seg.train.train_segmentation`'s (per epoch and within long epochs).
     """
     config = config or PretrainConfig()
     if not train_scenes:
@@ -71,7 +74,13 @@ def pretrain(
         },
     )
     result = train_segmentation(
-        model, train_set, config.train, val_sets=val_sets, checkpoint=out, card=card
+        model,
+        train_set,
+        config.train,
+        val_sets=val_sets,
+        checkpoint=out,
+        card=card,
+        on_progress=on_progress,
     )
     return model, result
 

@@ -13,7 +13,7 @@ import itertools
 import logging
 import math
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +26,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from csa_core.device import resolve_device
 from csa_core.eval.miou import ConfusionMatrix
+from csa_core.progress import ProgressCallback
 from csa_core.seg.adabn import recompute_batchnorm
 from csa_core.seg.checkpoint import ModelCard, save_checkpoint
 from csa_core.seg.config import TrainConfig
@@ -35,6 +36,9 @@ from csa_core.seg.models import SegmentationNet
 from csa_core.seg.predict import predict_labels
 
 log = logging.getLogger(__name__)
+
+# Batches between progress reports inside an epoch: a long epoch stays cancellable.
+BATCH_PROGRESS_EVERY = 10
 
 
 def lr_factor(schedule: str, step: int, total_steps: int, poly_power: float = 0.9) -> float:
@@ -106,8 +110,17 @@ class SegmentationTrainer:
         batches = (images for images, _ in itertools.islice(loader, math.ceil(limit / batch_size)))
         return recompute_batchnorm(self.model, batches, self.device)
 
-    def run_epoch(self, batches: Iterable[tuple[Tensor, Tensor]], desc: str = "train") -> float:
-        """Steps over every batch with a progress bar; returns the mean loss (NaN if none)."""
+    def run_epoch(
+        self,
+        batches: Iterable[tuple[Tensor, Tensor]],
+        desc: str = "train",
+        on_batch: Callable[[int, float], None] | None = None,
+    ) -> float:
+        """Steps over every batch with a progress bar; returns the mean loss (NaN if none).
+
+        ``on_batch(batches done, mean loss so far)`` is called after every step; what it
+        raises stops the epoch there.
+        """
         total, count = 0.0, 0
         bar = tqdm(
             batches,
@@ -120,6 +133,8 @@ class SegmentationTrainer:
             total += self.step(images, labels)
             count += 1
             bar.set_postfix(loss=f"{total / count:.3f}", lr=f"{self.lr:.1e}")
+            if on_batch is not None:
+                on_batch(count, total / count)
         return total / count if count else float("nan")
 
 
@@ -182,6 +197,24 @@ def _mean_score(scores: Mapping[str, float]) -> float | None:
     return sum(finite) / len(finite) if finite else None
 
 
+def _batch_reporter(
+    on_progress: ProgressCallback | None, epoch: int, epochs: int, n_batches: int
+) -> Callable[[int, float], None] | None:
+    """Reports every ``BATCH_PROGRESS_EVERY`` batches of an epoch but its last (the epoch's
+    own report follows that one)."""
+    if on_progress is None:
+        return None
+
+    def report(done: int, loss: float) -> None:
+        if done % BATCH_PROGRESS_EVERY == 0 and done < n_batches:
+            on_progress(
+                f"epoch {epoch}/{epochs}  batch {done}/{n_batches}  loss {loss:.4f}",
+                (epoch - 1 + done / n_batches) / epochs,
+            )
+
+    return report
+
+
 def train_segmentation(
     model: SegmentationNet,
     train_set: Dataset[tuple[Tensor, Tensor]],
@@ -190,6 +223,7 @@ def train_segmentation(
     checkpoint: str | Path | None = None,
     card: ModelCard | None = None,
     batch_sampler: Sampler[list[int]] | None = None,
+    on_progress: ProgressCallback | None = None,
 ) -> TrainResult:
     """Train ``model`` on ``train_set`` and keep the best weights.
 
@@ -200,6 +234,11 @@ def train_segmentation(
     their mean mIoU; without validation sets the last epoch is the best. On return the model
     holds the best weights, in eval mode, and ``checkpoint`` (if given) has them with ``card`` completed
     by the training config and scores.
+
+    ``on_progress(message, fraction)`` (:mod:`csa_core.progress`) is called after every epoch
+    (before its checkpoint is written) and every ``BATCH_PROGRESS_EVERY`` batches within one.
+    What it raises propagates unchanged and stops training at once: no checkpoint is
+    written after it, and the model keeps the weights of the interrupted step.
     """
     config = config or TrainConfig()
     val_sets = dict(val_sets or {})
@@ -241,7 +280,11 @@ def train_segmentation(
     with logging_redirect_tqdm():
         for epoch in range(1, config.epochs + 1):
             t0 = time.perf_counter()
-            loss = trainer.run_epoch(loader, desc=f"epoch {epoch}/{config.epochs}")
+            loss = trainer.run_epoch(
+                loader,
+                desc=f"epoch {epoch}/{config.epochs}",
+                on_batch=_batch_reporter(on_progress, epoch, config.epochs, len(loader)),
+            )
             result.images_seen = trainer.images_seen
             entry = EpochLog(epoch=epoch, train_loss=loss, lr=trainer.lr, seconds=0.0)
             last = epoch == config.epochs
@@ -260,6 +303,8 @@ def train_segmentation(
             if entry.score is not None:
                 line += f"  val mIoU {100 * entry.score:.1f}%"
             log.info(line + f"  {entry.seconds:.1f}s" + ("  (best)" if improved else ""))
+            if on_progress is not None:
+                on_progress(line, epoch / config.epochs)
             if improved or (last and best_state is None):
                 keep_best(epoch, entry.score, entry.val_miou)
     assert best_state is not None

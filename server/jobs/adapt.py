@@ -119,7 +119,7 @@ def run(ctx: JobContext) -> None:
         scores[(base_id, p["scene_id"])] = _finite(evaluate_scene(net, scene, "val", device=device).miou())
 
     ctx.progress(0.15, f"adapting to {target_name} ({config.preset}, {config.mode})", force=True)
-    step = adapt_one_step(net, scene, config, replay, pretrain, prior_entropy=prior, evaluate_before=False)
+    step = adapt_one_step(net, scene, config, replay, pretrain, prior_entropy=prior, evaluate_before=False, on_progress=ctx.core_progress(0.15, 0.85))
     ctx.progress(0.85, "scoring the adapted network", force=True)
 
     new_key = -1  # the new version's id is known only once it is registered

@@ -89,6 +89,16 @@ class JobContext:
             self.flush_logs()
         self.check()
 
+    def core_progress(self, start: float, end: float) -> Callable[[str, float], None]:
+        """The core library's ``on_progress`` for the phase [start, end] of this job: it reports
+        the core's message and fraction, then checks, so a cancel stops a long core loop within
+        an epoch, a joint round or ten NeRF steps instead of at the end of the phase."""
+
+        def on_progress(message: str, fraction: float) -> None:
+            self.progress(start + (end - start) * fraction, message)
+
+        return on_progress
+
     def log(self, message: str, level: str = "INFO") -> None:
         with self._lock:
             self._pending_logs.append((level, message))

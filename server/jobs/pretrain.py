@@ -69,7 +69,7 @@ def run(ctx: JobContext) -> None:
     )
     ctx.progress(0.1, f"training {p['arch']} for {p['epochs']} epoch(s)", force=True)
     out = ctx.workdir / "model.safetensors"
-    _, result = pretrain(scenes, config, out=out, val_scenes=val or None)
+    _, result = pretrain(scenes, config, out=out, val_scenes=val or None, on_progress=ctx.core_progress(0.1, 0.95))
     ctx.progress(0.95, "registering the model", force=True)
     score = result.best_score
     metrics = {
