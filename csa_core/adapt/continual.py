@@ -1,10 +1,12 @@
 """Continual adaptation over a sequence of scenes (DESIGN.md "Remember" and "Protocols").
 
-Step i: render the replay buffer from the memory bank (scenes 0..i-1), adapt to scene i
-with it and with the pre-training slice, add scene i's NeRF to the bank, then score every
-scene's validation views (future ones too: FWT needs R[i-1, i]) to fill row i of R.
-b[j] is the pre-trained network on scene j. Results go to ``out/results.json`` after
-every step, with the full config, so an interrupted run still leaves its finished steps.
+Step i: adapt to scene i with the run's method, then score every scene's validation views
+(future ones too: FWT needs R[i-1, i]) to fill row i of R. For our method (the default) a
+step renders the replay buffer from the memory bank (scenes 0..i-1), adapts with it and with
+the pre-training slice, and adds scene i's NeRF to the bank; the baselines are in
+:mod:`csa_core.adapt.methods`. b[j] is the pre-trained network on scene j. Results go to
+``out/results.json`` after every step, with the full config, so an interrupted run still
+leaves its finished steps.
 """
 
 from __future__ import annotations
@@ -19,11 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from csa_core.adapt.collapse import label_entropy
+from csa_core.adapt.bn_memory import BatchNormMemory
 from csa_core.adapt.config import AdaptConfig
-from csa_core.adapt.finetune import adapt_one_step
-from csa_core.adapt.memory_bank import MemoryBank
-from csa_core.adapt.replay import PretrainReplay, ReplayBuffer
+from csa_core.adapt.methods import MethodContext, check_method, make_method, pretrain_context
 from csa_core.atomic_io import write_text_atomic
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.errors import CSAInputError
@@ -85,13 +85,20 @@ def run_continual(
     out: str | Path,
     pretrain_scenes: Sequence[Scene] = (),
     save_model: bool = True,
+    method: str = "ours",
+    parent: ModelCard | None = None,
 ) -> ContinualResult:
     """Adapt ``model`` in place to ``scenes`` in order, with NeRF replay from a memory bank in
     ``out/memory`` and a ``config.replay.pretrain_fraction`` slice of ``pretrain_scenes``.
 
-    Writes ``out/results.json`` (updated after each step) and, with ``save_model``,
-    ``out/model.safetensors`` (the final network). Labels of ``scenes`` are read only to score.
+    ``method`` picks the method (:data:`csa_core.adapt.methods.METHODS`): ``ours`` (the
+    above, in ``config.mode``), ``mapping``, ``cotta`` or ``finetune``; R, b and the metrics
+    are computed alike for all. Writes ``out/results.json`` (updated after each step) and,
+    with ``save_model``, ``out/model.safetensors``: the final reported network (CoTTA's
+    teacher), with ``parent``'s card as its parent when given. Labels of ``scenes`` are read
+    only to score.
     """
+    check_method(method)
     if not scenes:
         raise CSAInputError("continual", "no scenes to adapt to")
     names = [s.name for s in scenes]
@@ -106,25 +113,8 @@ def run_continual(
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     device = config.seg.device
-    bank = MemoryBank(out / "memory")
-    pretrain = (
-        PretrainReplay.from_scenes(
-            pretrain_scenes, config.replay.pretrain_fraction, config.replay.seed
-        )
-        if pretrain_scenes
-        else None
-    )
-    prior = (
-        label_entropy(
-            lab
-            for s in pretrain_scenes
-            for f in s.train_frames
-            for k, lab in f.labels.items()
-            if k == NYU40_FOLDER
-        )
-        if pretrain_scenes
-        else None
-    )
+    pretrain, prior = pretrain_context(pretrain_scenes, config)
+    runner = make_method(method, MethodContext(config, out, pretrain, prior))
     T = len(scenes)
     b = val_mious(model, scenes, device)
     R = np.full((T, T), np.nan)
@@ -133,46 +123,40 @@ def run_continual(
         R=R,
         b=b,
         metrics={},
-        config={**config.to_dict(), "pretrain_scenes": [s.name for s in pretrain_scenes]},
+        config={
+            **config.to_dict(),
+            "method": method,
+            "method_settings": runner.settings(),
+            "pretrain_scenes": [s.name for s in pretrain_scenes],
+        },
     )
     if pretrain is not None:
         result.memory_bytes["pretrain_replay"] = pretrain.nbytes()
+    # CoTTA reports its EMA teacher and never re-estimates statistics: nothing to pool.
+    bn_memory = (
+        BatchNormMemory() if config.adabn and config.pool_batchnorm and method != "cotta" else None
+    )
     for i, scene in enumerate(scenes):
         t0 = time.perf_counter()
-        previous = [n for n in bank.scenes if n != scene.name]
-        replay = (
-            ReplayBuffer.from_memory_bank(
-                bank,
-                config.replay.buffer_size,
-                config.replay.views,
-                previous,
-                config.replay.max_render_samples,
-            )
-            if previous
-            else None
-        )
-        t_replay = time.perf_counter() - t0
-        step = adapt_one_step(
-            model, scene, config, replay, pretrain, prior_entropy=prior, evaluate_before=False
-        )
-        entry = bank.add(scene.name, step.nerf) if step.nerf is not None else None
+        record = runner.step(model, scene)
+        if bn_memory is not None:
+            bn_memory.add(scene.name, model)
+            bn_memory.apply(model)
+            result.memory_bytes["batchnorm_statistics"] = bn_memory.nbytes()
         t_eval = time.perf_counter()
-        R[i] = val_mious(model, scenes, device)
-        record = step.to_dict()
+        R[i] = val_mious(runner.reported(model), scenes, device)
         record["seconds"] = {
             **record["seconds"],
-            "replay_render": t_replay,
             "evaluate_all": time.perf_counter() - t_eval,
             "step": time.perf_counter() - t0,
         }
         record["step"] = i
-        record["replay"] = replay.per_scene() if replay is not None else {}
-        record["replay_bytes"] = replay.nbytes() if replay is not None else 0
-        record["nerf_bytes"] = entry.bytes if entry is not None else 0
+        record["memory_bytes"] = runner.memory_bytes()
         record["R_row"] = R[i].tolist()
         result.steps.append(record)
         log.info(
-            "step %d/%d %s: val mIoU %.1f%% (pre-trained %.1f%%), %.0fs",
+            "%s step %d/%d %s: val mIoU %.1f%% (pre-trained %.1f%%), %.0fs",
+            method,
             i + 1,
             T,
             scene.name,
@@ -180,23 +164,28 @@ def run_continual(
             100 * b[i],
             record["seconds"]["step"],
         )
-        result.memory_bytes = {
-            **result.memory_bytes,
-            "nerf_per_scene": bank.bytes_per_scene(),
-            "nerf_total": bank.total_bytes(),
-        }
+        result.memory_bytes = {**result.memory_bytes, **record["memory_bytes"]}
         result.seconds = time.perf_counter() - start
         _write(out, result)
     result.metrics = continual_metrics(R, b)
     result.seconds = time.perf_counter() - start
     _write(out, result)
     if save_model:
-        card = ModelCard.for_model(
-            model,
-            train_config={"task": "continual", "scenes": names, "adapt": config.to_dict()},
-            metrics=_nan_to_none(result.metrics),
-        )
-        save_checkpoint(out / "model.safetensors", model, card)
+        reported = runner.reported(model)
+        values = {
+            "train_config": {
+                "task": "continual",
+                "method": method,
+                "scenes": names,
+                "adapt": config.to_dict(),
+            },
+            "metrics": _nan_to_none(result.metrics),
+        }
+        if parent is not None:
+            card = parent.child(**values)
+        else:
+            card = ModelCard.for_model(model, **values)
+        save_checkpoint(out / "model.safetensors", reported, card)  # type: ignore[arg-type]
     return result
 
 

@@ -27,6 +27,7 @@ from csa_core.adapt.pseudo_labels import PseudoLabels, label_miou, make_pseudo_l
 from csa_core.adapt.replay import MixedBatchSampler, PretrainReplay, ReplayBuffer
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.nerf.model import SemanticNerf
+from csa_core.progress import ProgressCallback, notify, sub_progress
 from csa_core.seg.adabn import adapt_batchnorm
 from csa_core.seg.config import TrainConfig
 from csa_core.seg.dataset import SegmentationDataset
@@ -36,6 +37,11 @@ from csa_core.seg.train import SegmentationTrainer
 from csa_core.seg.transforms import JointAugment
 
 log = logging.getLogger(__name__)
+
+# Shares of one step's progress (``on_progress``): pseudo-labels (mostly the NeRF fit) up to
+# PSEUDO_LABELS_DONE, training (epochs or joint rounds) up to TRAINING_DONE, then scoring.
+PSEUDO_LABELS_DONE = 0.5
+TRAINING_DONE = 0.95
 
 
 def training_pairs(
@@ -114,12 +120,17 @@ def apply_adabn(
     seed: int = 0,
     device: str | None = None,
 ) -> int:
-    """AdaBN on camera images: the scene's own and, when replayed, the pre-training slice
-    (so earlier domains keep a say in the statistics)."""
+    """AdaBN on camera images: the scene's own and, when given, the pre-training slice
+    (so earlier domains keep a say in the statistics; see ``AdaptConfig.adabn_mix_pretrain``)."""
     images = list(camera_images) + (list(pretrain.images) if pretrain is not None else [])
     if len(images) < 2:
         return 0
     return adapt_batchnorm(model, images, batch_size=16, device=device, seed=seed)
+
+
+def adabn_slice(config: AdaptConfig, pretrain: PretrainReplay | None) -> PretrainReplay | None:
+    """The pre-training images AdaBN mixes in: the slice when the config asks for it."""
+    return pretrain if config.adabn_mix_pretrain else None
 
 
 def evaluate(model: SegmentationNet, scene: Scene, device: str | None = None) -> dict[str, float]:
@@ -190,11 +201,17 @@ def finetune_on_labels(
     epochs: int,
     replay: ReplayBuffer | None = None,
     pretrain: PretrainReplay | None = None,
+    on_progress: ProgressCallback | None = None,
 ) -> list[float]:
-    """Fine-tune on image/label pairs (plus replay) for ``epochs``; returns the epoch losses."""
+    """Fine-tune on image/label pairs (plus replay) for ``epochs``; returns the epoch losses.
+    ``on_progress`` (:mod:`csa_core.progress`) is called after every epoch."""
     dataset, primary, secondary = training_pairs(images, labels, replay, pretrain)
     tuner = SegFinetuner(model, config, epochs, batches_per_epoch(primary, secondary, config))
-    return [tuner.epoch(dataset, primary, secondary) for _ in range(epochs)]
+    losses: list[float] = []
+    for k in range(1, epochs + 1):
+        losses.append(tuner.epoch(dataset, primary, secondary))
+        notify(on_progress, f"epoch {k}/{epochs}  loss {losses[-1]:.4f}", k / epochs)
+    return losses
 
 
 def begin_step(
@@ -204,14 +221,34 @@ def begin_step(
     stage: str,
     prior_entropy: float | None,
     evaluate_before: bool,
+    on_progress: ProgressCallback | None = None,
+    pretrain: PretrainReplay | None = None,
 ) -> tuple[OneStepResult, PseudoLabels, dict[str, float]]:
-    """The common start of every mode: score before (optional), fit the NeRF on the network's
-    predictions, render pseudo-labels, check them for collapse at ``stage``."""
+    """The common start of every mode: score before (optional), re-estimate BatchNorm
+    statistics on the scene's camera images (with ``config.adabn``), fit the NeRF on the
+    network's predictions, render pseudo-labels, check them for collapse at ``stage``.
+    ``on_progress`` is the whole step's; this part reports up to ``PSEUDO_LABELS_DONE``.
+
+    The AdaBN before predicting matters: a network trained from scratch on another domain
+    labels a new scene with stale BatchNorm statistics far worse (measured on a synthetic
+    office room: 26.6% mIoU on its training views with the source statistics, 33.3% with
+    the scene's), and the NeRF can only fuse what the network predicts.
+    """
     device = config.seg.device
     t0 = time.perf_counter()
     before = evaluate(model, scene, device) if evaluate_before else {}
+    if config.adabn:
+        apply_adabn(
+            model,
+            [f.color for f in scene.train_frames],
+            adabn_slice(config, pretrain),
+            config.seg.seed,
+            device,
+        )
     t_eval = time.perf_counter() - t0
-    nerf, pseudo = make_pseudo_labels(model, scene, config.nerf, device)
+    nerf, pseudo = make_pseudo_labels(
+        model, scene, config.nerf, device, sub_progress(on_progress, 0.0, PSEUDO_LABELS_DONE)
+    )
     seconds = {"evaluate": t_eval, **pseudo.seconds}
     decision = check_labels(stage, pseudo.labels, pseudo, config, prior_entropy)
     pseudo_miou = label_miou(pseudo.labels, scene)
@@ -237,16 +274,26 @@ def adapt_one_step(
     pretrain: PretrainReplay | None = None,
     prior_entropy: float | None = None,
     evaluate_before: bool = True,
+    on_progress: ProgressCallback | None = None,
 ) -> OneStepResult:
     """Adapt ``model`` in place to ``scene`` (its labels are read only to score) with
     ``config.mode``; returns the scores before and after, pseudo-label quality, the guard's
-    decisions and timings. The fitted NeRF is in ``result.nerf`` for the memory bank."""
+    decisions and timings. The fitted NeRF is in ``result.nerf`` for the memory bank.
+
+    ``on_progress(message, fraction)`` (:mod:`csa_core.progress`) hears the NeRF fit's steps,
+    every fine-tuning epoch (every joint round) and the end. What it raises propagates
+    unchanged; ``model`` is then partly trained and should be discarded.
+    """
     if config.mode == "joint":
         from csa_core.adapt.joint import joint_adapt
 
-        return joint_adapt(model, scene, config, replay, pretrain, prior_entropy, evaluate_before)
+        return joint_adapt(
+            model, scene, config, replay, pretrain, prior_entropy, evaluate_before, on_progress
+        )
     device = config.seg.device
-    result, pseudo, seconds = begin_step(model, scene, config, "pseudo_labels", prior_entropy, evaluate_before)
+    result, pseudo, seconds = begin_step(
+        model, scene, config, "pseudo_labels", prior_entropy, evaluate_before, on_progress, pretrain
+    )
     decision = result.decisions[0]
     t1 = time.perf_counter()
     if decision.action == "skip":
@@ -262,15 +309,19 @@ def adapt_one_step(
             config.seg.epochs,
             replay,
             pretrain,
+            sub_progress(on_progress, PSEUDO_LABELS_DONE, TRAINING_DONE),
         )
         result.history = [{"epoch": k + 1, "loss": loss} for k, loss in enumerate(losses)]
         if config.adabn:
-            apply_adabn(model, pseudo.images(False), pretrain, config.seg.seed, device)
+            apply_adabn(
+                model, pseudo.images(False), adabn_slice(config, pretrain), config.seg.seed, device
+            )
     seconds["finetune"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     result.after = evaluate(model, scene, device)
     seconds["evaluate"] += time.perf_counter() - t2
     result.seconds = seconds
+    notify(on_progress, f"adapted to {scene.name}", 1.0)
     return result
 
 

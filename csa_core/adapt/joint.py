@@ -15,8 +15,11 @@ import time
 
 from csa_core.adapt.config import AdaptConfig
 from csa_core.adapt.finetune import (
+    PSEUDO_LABELS_DONE,
+    TRAINING_DONE,
     OneStepResult,
     SegFinetuner,
+    adabn_slice,
     apply_adabn,
     batches_per_epoch,
     begin_step,
@@ -33,6 +36,7 @@ from csa_core.adapt.pseudo_labels import (
 )
 from csa_core.adapt.replay import PretrainReplay, ReplayBuffer
 from csa_core.data.scene import Scene
+from csa_core.progress import ProgressCallback, notify, sub_progress
 from csa_core.seg.models import SegmentationNet
 
 
@@ -44,10 +48,16 @@ def joint_adapt(
     pretrain: PretrainReplay | None = None,
     prior_entropy: float | None = None,
     evaluate_before: bool = True,
+    on_progress: ProgressCallback | None = None,
 ) -> OneStepResult:
-    """Adapt ``model`` in place to ``scene`` by joint training; see the module docstring."""
+    """Adapt ``model`` in place to ``scene`` by joint training; see the module docstring.
+    ``on_progress`` is :func:`~csa_core.adapt.finetune.adapt_one_step`'s: the pre-fit's NeRF
+    steps, then every round (or every epoch of the fallback fine-tuning), then the end."""
     device = config.seg.device
-    result, pseudo, seconds = begin_step(model, scene, config, "prefit", prior_entropy, evaluate_before)
+    result, pseudo, seconds = begin_step(
+        model, scene, config, "prefit", prior_entropy, evaluate_before, on_progress, pretrain
+    )
+    training_progress = sub_progress(on_progress, PSEUDO_LABELS_DONE, TRAINING_DONE)
     result.mode = "joint"
     seconds.update(joint_seg=0.0, joint_nerf=0.0, joint_render=0.0)
     decision = result.decisions[0]
@@ -59,7 +69,7 @@ def joint_adapt(
         t = time.perf_counter()
         labels = [pseudo.predictions[n] for n in pseudo.names]
         losses = finetune_on_labels(
-            model, camera, labels, config, config.seg.epochs, replay, pretrain
+            model, camera, labels, config, config.seg.epochs, replay, pretrain, training_progress
         )
         result.history = [{"epoch": k + 1, "loss": loss} for k, loss in enumerate(losses)]
         seconds["joint_seg"] += time.perf_counter() - t
@@ -87,7 +97,7 @@ def joint_adapt(
             loss = (
                 sum(tuner.epoch(dataset, primary, secondary) for _ in range(per_round)) / per_round
             )
-            apply_adabn(model, camera, pretrain, config.seg.seed, device)
+            apply_adabn(model, camera, adabn_slice(config, pretrain), config.seg.seed, device)
             fresh = predict_frames(model, scene.train_frames, device=device)
             t_nerf = time.perf_counter()
             seconds["joint_seg"] += t_nerf - t
@@ -109,14 +119,16 @@ def joint_adapt(
                 f"round {r}", labels, pseudo, config, prior_entropy, in_joint=True
             )
             result.decisions.append(decision)
+            notify(training_progress, f"joint round {r}/{rounds}  loss {loss:.4f}", r / rounds)
             if decision.action == "stop_joint":
                 model.load_state_dict(kept)
                 break
         result.final_label_miou = label_miou(labels, scene)
     if config.adabn and result.trained:
-        apply_adabn(model, camera, pretrain, config.seg.seed, device)
+        apply_adabn(model, camera, adabn_slice(config, pretrain), config.seg.seed, device)
     t = time.perf_counter()
     result.after = evaluate(model, scene, device)
     seconds["evaluate"] += time.perf_counter() - t
     result.seconds = seconds
+    notify(on_progress, f"adapted to {scene.name}", 1.0)
     return result

@@ -21,6 +21,7 @@ from csa_core.nerf.config import NerfConfig
 from csa_core.nerf.config import preset as nerf_preset
 from csa_core.nerf.fit import fit_semantic_nerf, image_rays
 from csa_core.nerf.model import SemanticNerf
+from csa_core.progress import ProgressCallback, notify, sub_progress
 from csa_core.seg.predict import predict_labels
 
 PREDICTION_FOLDER = "prediction"
@@ -138,16 +139,28 @@ def render_pairs(
 
 
 def make_pseudo_labels(
-    model: nn.Module, scene: Scene, budget: NerfBudget, device: str | None = None
+    model: nn.Module,
+    scene: Scene,
+    budget: NerfBudget,
+    device: str | None = None,
+    on_progress: ProgressCallback | None = None,
 ) -> tuple[SemanticNerf, PseudoLabels]:
-    """Predict the training frames, fit a NeRF to the predictions, render labels and images."""
+    """Predict the training frames, fit a NeRF to the predictions, render labels and images.
+
+    ``on_progress`` (:mod:`csa_core.progress`) hears the NeRF fit's steps (most of the time)
+    and the end of the semantic steps and of the rendering."""
     frames = scene.train_frames
     t0 = time.perf_counter()
     predictions = predict_frames(model, frames, device=device)
     t1 = time.perf_counter()
     labelled = with_labels(scene, PREDICTION_FOLDER, predictions)
     nerf, _ = fit_semantic_nerf(
-        labelled, PREDICTION_FOLDER, nerf_config(budget), device=device, progress=False
+        labelled,
+        PREDICTION_FOLDER,
+        nerf_config(budget),
+        device=device,
+        progress=False,
+        on_progress=sub_progress(on_progress, 0.0, 0.8),
     )
     if budget.semantic_steps > 0:
         trainer = NerfLabelTrainer(
@@ -155,9 +168,11 @@ def make_pseudo_labels(
         )
         trainer.set_labels(predictions)
         trainer.train_semantics(budget.semantic_steps)
+    notify(on_progress, f"NeRF semantic steps ({budget.semantic_steps})", 0.9)
     t2 = time.perf_counter()
     rendered, labels = render_pairs(nerf, scene)
     t3 = time.perf_counter()
+    notify(on_progress, f"rendered pseudo-labels of {len(frames)} views", 1.0)
     pseudo = PseudoLabels(
         names=[f.name for f in frames],
         camera={f.name: f.color for f in frames},

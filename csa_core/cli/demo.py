@@ -1,9 +1,11 @@
 """``csa demo``: the main job on the embedded default data, end to end.
 
-Today: synthesise a pre-training family and a sequence of new scenes from another family,
-import the real 7-Scenes kitchen frames when they are present, write label previews and
-per-scene statistics, and fuse view-inconsistent per-frame labels of a new scene in a
-Semantic-NeRF (the method's 3D half). The continual adaptation step is still to come.
+Synthesise a pre-training family and a sequence of new scenes from another family, import
+the real 7-Scenes kitchen frames when they are present, write label previews and per-scene
+statistics, pre-train the light network, then adapt it scene after scene without labels
+(NeRF pseudo-labels, joint 2D-3D training, NeRF replay from the memory bank) and print the
+pre-trained vs adapted table with the continual metrics. ``--label-fusion`` adds the NeRF's
+label fusion on deliberately corrupted labels (the method's 3D half on its own).
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from csa_core.adapt.config import MODES
+from csa_core.adapt.config import PRESETS as ADAPT_PRESETS
 from csa_core.cli.args import positive_int, size_arg
 
 DEFAULT_SEVEN_SCENES = Path("../shared/data/7scenes-kitchen-100")
@@ -23,22 +27,28 @@ DEFAULT_SEVEN_SCENES = Path("../shared/data/7scenes-kitchen-100")
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="run the main job on the embedded default data")
     p.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (replaced)")
-    p.add_argument("--size", type=size_arg, default=(160, 120))
-    p.add_argument("--frames", type=positive_int, default=60)
+    p.add_argument("--size", type=size_arg, default=(128, 96), help="image size of every scene")
+    p.add_argument("--frames", type=positive_int, default=60, help="frames per new scene")
     p.add_argument("--pretrain-family", default="apartment")
-    p.add_argument("--pretrain-scenes", type=positive_int, default=4)
+    p.add_argument("--pretrain-scenes", type=positive_int, default=16)
+    p.add_argument("--pretrain-frames", type=positive_int, default=30, help="frames per pre-training room")
+    p.add_argument("--pretrain-epochs", type=positive_int, default=20)
     p.add_argument("--target-family", default="office")
     p.add_argument("--target-scenes", type=positive_int, default=3)
+    p.add_argument("--mode", default="joint", choices=MODES, help="adaptation mode (default: joint training)")
+    p.add_argument("--preset", default="cpu", choices=tuple(ADAPT_PRESETS), help="adaptation budget")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default=None, help="torch device (default: cuda when available)")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's)")
     p.add_argument(
         "--seven-scenes",
         type=Path,
         default=DEFAULT_SEVEN_SCENES,
         help="7-Scenes sequence to import if present",
     )
-    p.add_argument("--fusion-size", type=size_arg, default=(80, 60), help="working size of the NeRF label-fusion step")
+    p.add_argument("--label-fusion", action="store_true", help="also fuse corrupted labels of a new scene in a NeRF")
+    p.add_argument("--fusion-size", type=size_arg, default=(80, 60), help="working size of the label-fusion step")
     p.add_argument("--fusion-steps", type=positive_int, default=600, help="NeRF optimisation steps (fast preset)")
-    p.add_argument("--no-fusion", action="store_true", help="skip the NeRF label-fusion step")
     p.set_defaults(func=run_demo)
 
 
@@ -126,31 +136,66 @@ def _label_fusion(scene_dir: Path, out: Path, size: tuple[int, int], steps: int,
     }
 
 
+def _print_summary(console, result, adabn: list[float]) -> list[dict]:
+    from rich.table import Table
+
+    from csa_core.cli.demo_adapt import previous_means, summary_rows
+
+    rows = summary_rows(result, adabn)
+    table = Table(title="validation mIoU (%) of every new scene; labels: mIoU (%) on its training views")
+    for col in ("scene", "pre-trained", "AdaBN only", "adapted (its step)", "after all steps", "network labels", "NeRF labels"):
+        table.add_column(col, justify="right")
+    for r in rows:
+        table.add_row(r["scene"], *(f"{r[k]:.1f}" for k in ("pretrained", "adabn_only", "adapted", "after_all", "prediction_labels", "nerf_labels")))
+    mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "scene"}
+    table.add_row("mean", *(f"{mean[k]:.1f}" for k in ("pretrained", "adabn_only", "adapted", "after_all", "prediction_labels", "nerf_labels")), style="bold")
+    console.print(table)
+    prev = previous_means(result.R)
+    console.print("Previous (mean over earlier scenes after each step): " + ", ".join("-" if np.isnan(v) else f"{100 * v:.1f}" for v in prev))
+    m = result.metrics
+    console.print("ACC {:.1f}  A {:.1f}  FWT {:+.1f}  BWT {:+.1f}  (mIoU points)".format(*(100 * m[k] for k in ("acc", "a", "fwt", "bwt"))))
+    gain = mean["after_all"] - mean["pretrained"]
+    verdict = "beats" if gain > 0 else "does NOT beat"
+    console.print(f"the adapted network {verdict} the pre-trained one on the new scenes: {mean['after_all']:.1f}% vs {mean['pretrained']:.1f}% mean val mIoU ({gain:+.1f} points)")
+    return rows
+
+
 def run_demo(args: argparse.Namespace) -> int:
+    import torch
     from rich.console import Console
     from rich.table import Table
 
+    from csa_core.adapt.config import preset as adapt_preset
+    from csa_core.adapt.continual import format_table, run_continual
     from csa_core.atomic_io import write_text_atomic
+    from csa_core.cli.demo_adapt import adabn_only, plot_steps, pretrain_network
     from csa_core.data.scene_io import read_scene
     from csa_core.data.sevenscenes import import_7scenes
     from csa_core.data.synth import synthesize
+    from csa_core.device import resolve_device
 
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     console = Console()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    device = str(resolve_device(args.device))
     report: dict = {
         "config": {
             k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"
         },
+        "device": device,
+        "torch_threads": torch.get_num_threads(),
         "scenes": {},
+        "seconds": {},
     }
 
     console.rule("1. synthetic rooms")
     pre = synthesize(
         out / "scenes" / "pretrain",
         scenes=args.pretrain_scenes,
-        frames=args.frames,
+        frames=args.pretrain_frames,
         size=args.size,
         family=args.pretrain_family,
         seed=args.seed,
@@ -176,13 +221,16 @@ def run_demo(args: argparse.Namespace) -> int:
         console.print(
             f"[yellow]{args.seven_scenes} not found: skipping the real-data import[/yellow]"
         )
+    report["seconds"]["data"] = time.perf_counter() - t0
 
     console.rule("3. previews and statistics")
     table = Table(title="scenes")
     for col in ("scene", "role", "frames (train/val)", "depth measured", "classes"):
         table.add_column(col)
+    scenes = {}
     for path, role in roles.items():
         scene = read_scene(path)
+        scenes[path] = scene
         stats = _scene_stats(scene) | {"role": role, "path": str(path)}
         stats["previews"] = _previews(scene, out / "previews" / scene.name)
         report["scenes"][scene.name] = stats
@@ -195,8 +243,8 @@ def run_demo(args: argparse.Namespace) -> int:
         )
     console.print(table)
 
-    if not args.no_fusion:
-        console.rule("4. NeRF label fusion on a new scene")
+    if args.label_fusion:
+        console.rule("NeRF label fusion on a new scene")
         fusion = _label_fusion(new[0], out / "fusion", args.fusion_size, args.fusion_steps, args.seed)
         report["label_fusion"] = fusion
         ft = Table(title=f"label fusion on {fusion['scene']} ({fusion['train_views']} training views at "
@@ -209,10 +257,39 @@ def run_demo(args: argparse.Namespace) -> int:
         console.print(ft)
         console.print(f"fusion previews (colour | corrupted | fused | truth) in {out / 'fusion' / 'previews'}")
 
-    report["seconds"] = time.perf_counter() - t0
-    write_text_atomic(out / "report.json", json.dumps(report, indent=2))
+    console.rule(f"4. pre-training the light network on {len(pre)} {args.pretrain_family} rooms")
+    t = time.perf_counter()
+    pre_scenes = [scenes[p] for p in pre]
+    target_scenes = [scenes[p] for p in new]
+    model, info = pretrain_network(
+        pre_scenes, args.size, args.pretrain_epochs, args.seed, device, out / "pretrained.safetensors"
+    )
+    report["pretrain"] = info
+    report["seconds"]["pretrain"] = time.perf_counter() - t
+    console.print(f"best epoch {info['best_epoch']}: {100 * (info['best_val_miou'] or 0):.1f}% mIoU on the "
+                  f"{args.pretrain_family} rooms' validation views; checkpoint {info['checkpoint']}")
+
+    console.rule(f"5. continual adaptation to {len(new)} {args.target_family} rooms ({args.mode}, NeRF replay)")
+    t = time.perf_counter()
+    config = adapt_preset(args.preset)
+    config.mode = args.mode
+    config.seg.seed = config.nerf.seed = config.replay.seed = args.seed
+    config.seg.device = device
+    adabn = adabn_only(model, target_scenes, config)
+    result = run_continual(model, target_scenes, config, out / "continual", pretrain_scenes=pre_scenes)
+    report["seconds"]["adapt"] = time.perf_counter() - t
+    console.print(format_table(result))
+    report["summary"] = _print_summary(console, result, adabn)
+    report["continual"] = {"results": str(out / "continual" / "results.json"), "metrics": result.metrics}
+    plot = out / "plots" / "miou_per_step.png"
+    plot.parent.mkdir(parents=True, exist_ok=True)
+    plot_steps(plot, result)
+
+    report["seconds"]["total"] = time.perf_counter() - t0
+    write_text_atomic(out / "report.json", json.dumps(report, indent=2, default=float))
     console.print(
-        f"scenes in {out / 'scenes'}, previews in {out / 'previews'}, report {out / 'report.json'} "
-        f"({report['seconds']:.0f} s)"
+        f"scenes in {out / 'scenes'}, previews in {out / 'previews'}, plot {plot}, adapted model "
+        f"{out / 'continual' / 'model.safetensors'}, memory bank {out / 'continual' / 'memory'}, "
+        f"report {out / 'report.json'} ({report['seconds']['total']:.0f} s)"
     )
     return 0

@@ -11,7 +11,7 @@ from csa_core import __version__
 from csa_core.errors import CSAInputError
 
 # Command groups in data-flow order; each module exposes register(subparsers).
-GROUPS = ("data", "nerf", "seg", "eval", "demo", "serve", "worker")
+GROUPS = ("data", "nerf", "seg", "adapt", "experiment", "eval", "demo", "serve", "worker")
 
 
 def build_parser() -> argparse.ArgumentParser:

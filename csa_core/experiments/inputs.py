@@ -1,0 +1,201 @@
+"""What every experiment reads: a pre-trained network, the scene sequence, seeds and a preset.
+
+Inputs are checked before any work starts, so a wrong path or a scene without ground truth
+fails in a second with one line naming it, not after an hour of NeRF fits. Each run gets a
+fresh copy of the pre-trained network and a config whose seeds are all the run's seed, so
+runs are independent and repeatable.
+"""
+
+from __future__ import annotations
+
+import copy
+import platform
+import shutil
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from csa_core.adapt.config import MODES, AdaptConfig, preset
+from csa_core.adapt.methods import check_method
+from csa_core.data.scene import NYU40_FOLDER, Scene
+from csa_core.errors import CSAInputError
+from csa_core.seg.checkpoint import ModelCard
+from csa_core.seg.models import SegmentationNet
+
+
+def seeded(config: AdaptConfig, seed: int) -> AdaptConfig:
+    """A copy of ``config`` with every seed (NeRF, fine-tuning, replay) set to ``seed``."""
+    config = copy.deepcopy(config)
+    config.nerf.seed = config.seg.seed = config.replay.seed = int(seed)
+    return config
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"0,1,2"`` -> ``[0, 1, 2]``; an input error for anything else or repeated seeds."""
+    try:
+        seeds = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise CSAInputError("--seeds", f"expected integers like 0,1,2, got {text!r}") from None
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise CSAInputError("--seeds", f"expected distinct integers like 0,1,2, got {text!r}")
+    return seeds
+
+
+def load_scenes(
+    paths: Sequence[Path], size: tuple[int, int] | None, need_ground_truth: bool
+) -> list[Scene]:
+    """Read scene folders at ``size``; with ``need_ground_truth`` every frame must have
+    ``label-nyu40`` (the experiments score against it) and names must be unique."""
+    from csa_core.data.scene_io import read_scene
+
+    scenes = []
+    for path in paths:
+        scene = read_scene(path, size=size)
+        if need_ground_truth and any(NYU40_FOLDER not in f.labels for f in scene.frames):
+            raise CSAInputError(
+                Path(path) / NYU40_FOLDER,
+                "ground truth needed to score this scene (every frame needs a label-nyu40 map)",
+            )
+        scenes.append(scene)
+    names = [s.name for s in scenes]
+    if len(set(names)) != len(names):
+        raise CSAInputError("scenes", f"scene folder names must be unique, got {names}")
+    return scenes
+
+
+def versions() -> dict[str, str]:
+    """Versions of what produced a result (recorded in every config.json)."""
+    import numpy
+    import torchvision
+
+    from csa_core import __version__
+
+    return {
+        "csa": __version__,
+        "python": sys.version.split()[0],
+        "torch": torch.__version__,
+        "torchvision": torchvision.__version__,
+        "numpy": numpy.__version__,
+        "platform": platform.platform(),
+        "torch_threads": str(torch.get_num_threads()),
+    }
+
+
+@dataclass
+class ExperimentInputs:
+    """The pre-trained network and the data of an experiment, and how runs are configured."""
+
+    model_path: Path
+    model: SegmentationNet
+    card: ModelCard
+    scenes: list[Scene]
+    scene_paths: list[Path]
+    out: Path
+    preset: str = "cpu"
+    seeds: list[int] = field(default_factory=lambda: [0])
+    pretrain_scenes: list[Scene] = field(default_factory=list)
+    pretrain_paths: list[Path] = field(default_factory=list)
+    size: tuple[int, int] | None = None
+    device: str | None = None
+    mode: str | None = None  # ours' mode in the continual protocol (None: the preset's)
+    methods: list[str] | None = None  # None: the experiment's default list
+
+    def network(self) -> SegmentationNet:
+        """A fresh copy of the pre-trained network (runs must not share weights)."""
+        return copy.deepcopy(self.model)
+
+    def run_folder(self, *parts: str) -> Path:
+        """An empty folder ``out/runs/<parts>`` for one run. A folder left by an earlier
+        invocation is removed first: a stale NeRF memory bank there would be replayed."""
+        folder = self.out.joinpath("runs", *parts)
+        if folder.exists():
+            shutil.rmtree(folder)
+        folder.mkdir(parents=True)
+        return folder
+
+    def config(self, seed: int, mode: str | None = None) -> AdaptConfig:
+        """The preset's config with every seed set to ``seed``, ``mode`` (or the inputs'
+        mode) and the device."""
+        config = seeded(preset(self.preset), seed)
+        config.mode = mode or self.mode or config.mode
+        config.seg.device = self.device
+        return config
+
+    def describe(self) -> dict[str, Any]:
+        """The inputs as recorded in config.json."""
+        return {
+            "model": str(self.model_path),
+            "model_card": {
+                "arch": self.card.arch,
+                "weights_id": self.card.weights_id,
+                "input_size": self.card.input_size,
+            },
+            "scenes": [str(p) for p in self.scene_paths],
+            "scene_names": [s.name for s in self.scenes],
+            "pretrain_scenes": [str(p) for p in self.pretrain_paths],
+            "preset": self.preset,
+            "mode": self.mode,
+            "methods": self.methods,
+            "seeds": self.seeds,
+            "size": list(self.size) if self.size else None,
+            "device": self.device,
+        }
+
+
+def load_inputs(
+    model_path: Path,
+    scene_paths: Sequence[Path],
+    out: Path,
+    preset_name: str = "cpu",
+    seeds: Sequence[int] = (0,),
+    pretrain_paths: Sequence[Path] = (),
+    size: tuple[int, int] | None = None,
+    device: str | None = None,
+    mode: str | None = None,
+    methods: Sequence[str] | None = None,
+    allowed_methods: Sequence[str] = (),
+    need_ground_truth: bool = True,
+) -> ExperimentInputs:
+    """Check and load everything an experiment needs. ``size`` defaults to the size the
+    network was trained at (then the scenes' own); ``methods`` must be in ``allowed_methods``."""
+    from csa_core.adapt.config import PRESETS
+    from csa_core.device import resolve_device
+    from csa_core.seg.checkpoint import load_checkpoint
+
+    if preset_name not in PRESETS:
+        raise CSAInputError(
+            "--preset", f"unknown preset {preset_name!r} (choose from {', '.join(PRESETS)})"
+        )
+    if mode is not None and mode not in MODES:
+        raise CSAInputError("--mode", f"unknown mode {mode!r} (choose from {', '.join(MODES)})")
+    for name in methods or ():
+        check_method(name, allowed_methods, "--methods")
+    if methods is not None and not methods:
+        raise CSAInputError("--methods", "no method given")
+    if not scene_paths:
+        raise CSAInputError("--scenes", "no scene folders given")
+    model, card = load_checkpoint(model_path, device=resolve_device(device))
+    if size is None and card.input_size:
+        size = (int(card.input_size[0]), int(card.input_size[1]))
+    scenes = load_scenes(scene_paths, size, need_ground_truth)
+    pretrain = load_scenes(pretrain_paths, size, need_ground_truth=True) if pretrain_paths else []
+    return ExperimentInputs(
+        model_path=Path(model_path),
+        model=model,
+        card=card,
+        scenes=scenes,
+        scene_paths=[Path(p) for p in scene_paths],
+        out=Path(out),
+        preset=preset_name,
+        seeds=list(seeds),
+        pretrain_scenes=pretrain,
+        pretrain_paths=[Path(p) for p in pretrain_paths],
+        size=size,
+        device=device,
+        mode=mode,
+        methods=list(methods) if methods is not None else None,
+    )
