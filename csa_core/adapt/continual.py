@@ -132,9 +132,10 @@ def run_continual(
     )
     if pretrain is not None:
         result.memory_bytes["pretrain_replay"] = pretrain.nbytes()
-    # CoTTA reports its EMA teacher and never re-estimates statistics: nothing to pool.
     bn_memory = (
-        BatchNormMemory() if config.adabn and config.pool_batchnorm and method != "cotta" else None
+        BatchNormMemory()
+        if config.adabn and config.pool_batchnorm and runner.reestimates_batchnorm
+        else None
     )
     for i, scene in enumerate(scenes):
         t0 = time.perf_counter()

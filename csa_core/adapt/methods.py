@@ -82,6 +82,9 @@ class ContinualMethod:
     with ``method_total`` the bytes that count in the comparison of methods."""
 
     name: ClassVar[str] = ""
+    # Whether a step ends with AdaBN on the scene (with ``config.adabn``), so that
+    # run_continual pools the adapted scenes' statistics (csa_core.adapt.bn_memory).
+    reestimates_batchnorm: ClassVar[bool] = True
 
     def __init__(self, context: MethodContext):
         self.context = context
@@ -249,6 +252,7 @@ class CoTTAMethod(ContinualMethod):
     """One CoTTA instance across the sequence; its teacher is the reported network."""
 
     name = "cotta"
+    reestimates_batchnorm = False  # reports its EMA teacher, never re-estimates statistics
 
     def __init__(self, context: MethodContext, settings: CoTTAConfig | None = None):
         super().__init__(context)

@@ -22,6 +22,15 @@ from csa_core.adapt.config import PRESETS as ADAPT_PRESETS
 from csa_core.cli.args import positive_int, size_arg
 
 DEFAULT_SEVEN_SCENES = Path("../shared/data/7scenes-kitchen-100")
+# Summary columns: key of csa_core.cli.demo_adapt.summary_rows -> printed title.
+SUMMARY_COLUMNS = {
+    "pretrained": "pre-trained",
+    "adabn_only": "AdaBN only",
+    "adapted": "adapted (its step)",
+    "after_all": "after all steps",
+    "prediction_labels": "network labels",
+    "nerf_labels": "NeRF labels",
+}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -139,18 +148,20 @@ def _label_fusion(scene_dir: Path, out: Path, size: tuple[int, int], steps: int,
 def _print_summary(console, result, adabn: list[float]) -> list[dict]:
     from rich.table import Table
 
-    from csa_core.cli.demo_adapt import previous_means, summary_rows
+    from csa_core.cli.demo_adapt import summary_rows
+    from csa_core.eval.continual import previous_row
 
     rows = summary_rows(result, adabn)
     table = Table(title="validation mIoU (%) of every new scene; labels: mIoU (%) on its training views")
-    for col in ("scene", "pre-trained", "AdaBN only", "adapted (its step)", "after all steps", "network labels", "NeRF labels"):
-        table.add_column(col, justify="right")
+    table.add_column("scene", justify="right")
+    for title in SUMMARY_COLUMNS.values():
+        table.add_column(title, justify="right")
     for r in rows:
-        table.add_row(r["scene"], *(f"{r[k]:.1f}" for k in ("pretrained", "adabn_only", "adapted", "after_all", "prediction_labels", "nerf_labels")))
-    mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "scene"}
-    table.add_row("mean", *(f"{mean[k]:.1f}" for k in ("pretrained", "adabn_only", "adapted", "after_all", "prediction_labels", "nerf_labels")), style="bold")
+        table.add_row(r["scene"], *(f"{r[k]:.1f}" for k in SUMMARY_COLUMNS))
+    mean = {k: float(np.mean([r[k] for r in rows])) for k in SUMMARY_COLUMNS}
+    table.add_row("mean", *(f"{mean[k]:.1f}" for k in SUMMARY_COLUMNS), style="bold")
     console.print(table)
-    prev = previous_means(result.R)
+    prev = previous_row(result.R)
     console.print("Previous (mean over earlier scenes after each step): " + ", ".join("-" if np.isnan(v) else f"{100 * v:.1f}" for v in prev))
     m = result.metrics
     console.print("ACC {:.1f}  A {:.1f}  FWT {:+.1f}  BWT {:+.1f}  (mIoU points)".format(*(100 * m[k] for k in ("acc", "a", "fwt", "bwt"))))

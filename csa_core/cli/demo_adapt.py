@@ -79,11 +79,6 @@ def summary_rows(result: ContinualResult, adabn: Sequence[float]) -> list[dict[s
     return rows
 
 
-def previous_means(R: np.ndarray) -> list[float]:
-    """Mean mIoU on the scenes before step i, after step i (NaN for the first step)."""
-    return [float(np.mean(R[i, :i])) if i else float("nan") for i in range(len(R))]
-
-
 def plot_steps(path: Path, result: ContinualResult) -> None:
     """mIoU of every scene's validation views, pre-trained and after every step."""
     from csa_core.experiments.report import Plot, Series, save_plot

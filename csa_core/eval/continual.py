@@ -71,3 +71,9 @@ def continual_metrics(R: Matrix, b: Sequence[float] | np.ndarray) -> dict[str, f
         "fwt": float((before - base[1:]).mean()) if steps > 1 else nan,
         "bwt": float((last[:-1] - np.diagonal(scores)[:-1]).mean()) if steps > 1 else nan,
     }
+
+
+def previous_row(R: np.ndarray) -> np.ndarray:
+    """Mean of R[i, j] over j < i for every step i (the paper's "Previous" row; NaN at step 0:
+    nothing seen before)."""
+    return np.array([R[i, :i].mean() if i else np.nan for i in range(R.shape[0])])

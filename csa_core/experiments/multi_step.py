@@ -13,6 +13,7 @@ import numpy as np
 
 from csa_core.adapt.continual import run_continual
 from csa_core.adapt.methods import METHODS
+from csa_core.eval.continual import previous_row
 from csa_core.experiments.inputs import ExperimentInputs
 from csa_core.experiments.report import (
     ExperimentReport,
@@ -38,11 +39,6 @@ METRICS: tuple[str, ...] = ("acc", "a", "fwt", "bwt")
 def adapt_row(R: np.ndarray) -> np.ndarray:
     """R[i, i] for every step i."""
     return np.diagonal(R).copy()
-
-
-def previous_row(R: np.ndarray) -> np.ndarray:
-    """Mean of R[i, j] over j < i for every step i (NaN at step 0: nothing seen before)."""
-    return np.array([R[i, :i].mean() if i else np.nan for i in range(R.shape[0])])
 
 
 def run(inputs: ExperimentInputs) -> ExperimentReport:
