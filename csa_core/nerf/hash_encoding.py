@@ -9,7 +9,8 @@ owning a contiguous block of rows, so one gather serves every level and corner.
 CPU notes: corner indices and trilinear weights are built per axis (2 values per axis) and
 combined by broadcasting, which is ~8x less integer work than hashing 8 corners; the forward
 pass is one ``embedding_bag`` (gather + weighted sum), the backward pass one ``index_add_``.
-No gradient flows to the positions (the poses are fixed).
+No gradient flows to the positions (the poses are fixed). Without autograd (rendering), large
+batches are encoded in cache-sized blocks (``INFERENCE_BLOCK``).
 """
 
 from __future__ import annotations
@@ -22,10 +23,26 @@ from torch import Tensor, nn
 
 from csa_core.nerf.config import HashEncodingConfig
 
-# Spatial-hash primes of Instant-NGP (x uses 1). Arithmetic is done in int64 and masked, so the
-# result equals the uint32 hash of the paper for power-of-two tables.
+# Spatial-hash primes of Instant-NGP (x uses 1).
 _PRIMES = (1, 2654435761, 805459861)
+
+
+def _as_int32(value: int) -> int:
+    """``value`` mod 2^32 as a signed 32-bit number (same low bits)."""
+    return (value + 2**31) % 2**32 - 2**31
+
+
+# Corner rows are computed in int32: products wrap modulo 2^32 exactly like the paper's uint32
+# hash, and the mask keeps only low bits, so the rows equal the uint32 hash for power-of-two
+# tables (tests/nerf compares them with an int64 reference). Half the memory traffic of
+# int64: on a 2-core EPYC the hashing of 16k positions x 15 levels fell from 6.7 to 3.1 ms.
+_INDEX = torch.int32
 _INIT_SCALE = 1e-4  # table initialised uniformly in [-1e-4, 1e-4] (Instant-NGP)
+# Without gradients, positions are encoded this many at a time. The corner tables are
+# (levels x 8 x N) integers, so at rendering sizes (10^5-10^6 samples) every elementwise step
+# streams hundreds of MB through memory; in blocks of 2^15 they stay in cache. Measured on a
+# 2-core EPYC, 16 levels, 245,760 positions: 1879 ms in one block, 416 ms in blocks of 2^15.
+INFERENCE_BLOCK = 2**15
 
 
 def level_resolutions(cfg: HashEncodingConfig) -> list[int]:
@@ -95,16 +112,18 @@ class HashEncoding(nn.Module):
             "resolutions", torch.tensor(resolutions, dtype=torch.float32), persistent=False
         )
         self.register_buffer(
-            "_res_int", torch.tensor(resolutions, dtype=torch.int64), persistent=False
+            "_res_int", torch.tensor(resolutions, dtype=_INDEX), persistent=False
         )
-        self.register_buffer("_offsets", torch.tensor(offsets, dtype=torch.int64), persistent=False)
+        self.register_buffer("_offsets", torch.tensor(offsets, dtype=_INDEX), persistent=False)
         strides = [[1, r + 1, (r + 1) ** 2] for r in resolutions[: self._num_dense]]
         self.register_buffer(
             "_dense_strides",
-            torch.tensor(strides, dtype=torch.int64).reshape(-1, 3),
+            torch.tensor(strides, dtype=_INDEX).reshape(-1, 3),
             persistent=False,
         )
-        self.register_buffer("_primes", torch.tensor(_PRIMES, dtype=torch.int64), persistent=False)
+        self.register_buffer(
+            "_primes", torch.tensor([_as_int32(p) for p in _PRIMES], dtype=_INDEX), persistent=False
+        )
         init = (
             torch.rand(start, cfg.features_per_level, generator=generator) * 2 - 1
         ) * _INIT_SCALE
@@ -124,7 +143,7 @@ class HashEncoding(nn.Module):
         levels = self.cfg.num_levels
         pos = x.detach().clamp(0.0, 1.0).T.unsqueeze(0) * self.resolutions.view(-1, 1, 1)  # L 3 N
         # Clamped so that a position on the far face interpolates inside the last cell.
-        cell = pos.floor().long().clamp_max(self._res_int.view(-1, 1, 1) - 1)
+        cell = pos.floor().to(_INDEX).clamp_max(self._res_int.view(-1, 1, 1) - 1)
         frac = pos - cell
         w = torch.stack([1 - frac, frac], dim=1)  # L x 2 (corner) x 3 (axis) x N
         weights = (w[:, :, None, None, 2] * w[:, None, :, None, 1]) * w[
@@ -134,7 +153,7 @@ class HashEncoding(nn.Module):
         nd = self._num_dense
         n = x.shape[0]
         rows = torch.empty(
-            levels, 2, 2, 2, n, dtype=torch.long, device=x.device
+            levels, 2, 2, 2, n, dtype=_INDEX, device=x.device
         )  # written in place, no concatenation
         if nd > 0:  # dense levels: x + y * (R + 1) + z * (R + 1)^2 + level offset
             cd = c[:nd] * self._dense_strides.view(nd, 1, 3, 1)
@@ -165,6 +184,14 @@ class HashEncoding(nn.Module):
         ``extra_levels`` levels of this one) also that table's features ``(N, extra_levels * F')``,
         interpolated with the same corners and weights (computed once)."""
         n = x.shape[0]
+        if n > INFERENCE_BLOCK and not torch.is_grad_enabled():
+            parts = [
+                self(x[i : i + INFERENCE_BLOCK], extra, extra_levels)
+                for i in range(0, n, INFERENCE_BLOCK)
+            ]
+            if extra is None:
+                return torch.cat(parts)
+            return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
         if n == 0:
             empty = x.new_zeros(0, self.out_dim)
             return (

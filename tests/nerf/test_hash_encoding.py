@@ -77,3 +77,40 @@ def test_backward_scatters_into_the_touched_rows():
     (plain * w).sum().backward()
     torch.testing.assert_close(enc.table.grad, table.grad, rtol=1e-5, atol=1e-6)
     assert enc.table.grad.abs().sum() > 0
+
+
+def test_int32_hashing_matches_uint32_reference_at_fine_resolutions():
+    # Cell coordinates up to 2048 times the primes overflow 32 bits many times over: the int32
+    # arithmetic must still give the paper's uint32 hash modulo a 2^19 table.
+    cfg = HashEncodingConfig(
+        num_levels=3,
+        features_per_level=2,
+        log2_table_size=19,
+        base_resolution=512,
+        finest_resolution=2048,
+    )
+    enc = HashEncoding(cfg, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        enc.table.normal_(generator=torch.Generator().manual_seed(1))
+    x = torch.rand(40, 3, generator=torch.Generator().manual_seed(5)) * 0.2 + 0.8
+    assert enc._num_dense == 0
+    torch.testing.assert_close(enc(x).double(), _reference_encoding(enc, x), rtol=1e-5, atol=1e-5)
+
+
+def test_inference_blocks_give_the_same_features(monkeypatch):
+    from csa_core.nerf import hash_encoding
+
+    cfg = HashEncodingConfig(
+        num_levels=5, features_per_level=2, log2_table_size=11, base_resolution=4, finest_resolution=96
+    )
+    enc = HashEncoding(cfg, generator=torch.Generator().manual_seed(0))
+    extra = torch.randn(enc.level_rows(3), 3, generator=torch.Generator().manual_seed(6))
+    x = torch.rand(1000, 3, generator=torch.Generator().manual_seed(7))
+    whole, whole_extra = enc(x, extra, 3)  # gradients on: one block
+    monkeypatch.setattr(hash_encoding, "INFERENCE_BLOCK", 128)
+    with torch.no_grad():
+        blocked, blocked_extra = enc(x, extra, 3)
+        alone = enc(x)
+    assert torch.equal(blocked, whole.detach())
+    assert torch.equal(blocked_extra, whole_extra)
+    assert torch.equal(alone, whole.detach())
