@@ -13,7 +13,7 @@ Examples (run from the repository root):
 Held-out (``--holdout``): ``tail`` = the scene's validation frames (last 20% of the trajectory,
 the project's protocol); ``every:N`` = every N-th frame (interleaved, the usual NeRF protocol),
 training on the others. ``--color-camera kinect`` moves 7-Scenes frames to the Kinect colour
-camera (``csa_core.nerf.registration``). On synthetic scenes with ``--noise`` the labels fused
+camera (``csa_core.data.registration``). On synthetic scenes with ``--noise`` the labels fused
 are corrupted per frame (``csa_core.nerf.label_noise``) and the table reports mIoU vs ground
 truth of the corrupted inputs and of the labels rendered at the training and held-out views.
 ``--reload`` renders everything from the checkpoint written in the storage dtype and read back.
@@ -31,18 +31,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from csa_core.data.registration import (
+    KINECT_V1_COLOR,
+    color_consistency_rms,
+    estimate_color_camera,
+    to_color_camera,
+)
 from csa_core.eval.miou import ConfusionMatrix
 from csa_core.nerf.appearance import nearest_frame
 from csa_core.nerf.checkpoint import checkpoint_bytes, load_checkpoint, save_checkpoint
 from csa_core.nerf.config import NerfConfig, preset
 from csa_core.nerf.fit import fit_semantic_nerf
 from csa_core.nerf.label_noise import corrupt_labels
-from csa_core.nerf.registration import (
-    KINECT_V1_COLOR,
-    color_consistency_rms,
-    estimate_color_camera,
-    to_color_camera,
-)
 from csa_core.nerf.render import render_image
 
 
@@ -51,7 +51,7 @@ def load_scene(spec: str, size: tuple[int, int], frames: int):
     if kind == "7scenes":
         from csa_core.data.sevenscenes import load_7scenes
 
-        return load_7scenes(rest, size=size), False
+        return load_7scenes(rest, size=size, camera="depth"), False  # --color-camera moves it
     if kind == "synth":
         from csa_core.data.synth import generate_scene
 

@@ -33,6 +33,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     i.add_argument("--every", type=positive_int, default=1, help="keep every N-th frame")
     i.add_argument("--size", type=size_arg, default=None, help="working size WxH (default: source size)")
     i.add_argument("--overwrite", action="store_true")
+    i.add_argument(
+        "--camera",
+        choices=("color", "depth"),
+        default="color",
+        help="color: move frames to the Kinect colour camera (default); depth: the raw depth-camera frames",
+    )
     i.set_defaults(func=_import_7scenes)
 
     n = cmds.add_parser("info", help="summarise a scene folder")
@@ -76,7 +82,9 @@ def _families(args: argparse.Namespace) -> int:
 def _import_7scenes(args: argparse.Namespace) -> int:
     from csa_core.data.sevenscenes import import_7scenes
 
-    scene = import_7scenes(args.src, args.out, every=args.every, size=args.size, overwrite=args.overwrite)
+    scene = import_7scenes(
+        args.src, args.out, every=args.every, size=args.size, overwrite=args.overwrite, camera=args.camera
+    )
     w, h = scene.size
     print(f"{args.out}: {len(scene)} frames at {w}x{h} ({len(scene.skipped)} skipped)")
     return 0

@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from csa_core.data.camera import Intrinsics, backproject
-from csa_core.data.scene import Frame, Scene
-from csa_core.nerf.registration import (
+from csa_core.data.registration import (
     ColorCamera,
     color_consistency_rms,
     color_pose,
@@ -15,6 +14,7 @@ from csa_core.nerf.registration import (
     register_depth,
     to_color_camera,
 )
+from csa_core.data.scene import Frame, Scene
 from tests.nerf.conftest import synthetic_scene
 from tests.tiny_scenes import look_at_pose
 
