@@ -17,7 +17,8 @@ import time
 
 import torch
 
-from csa_core.data.synth import family_names, generate_scene, parse_size, scene_seed
+from csa_core.cli.args import size_arg
+from csa_core.data.synth import family_names, generate_scene, scene_seed
 from csa_core.eval.miou import ConfusionMatrix
 from csa_core.seg.config import PretrainConfig, TrainConfig
 from csa_core.seg.predict import evaluate_scene
@@ -45,7 +46,7 @@ def main() -> None:
     p.add_argument("--eval-scenes", type=int, default=3)
     p.add_argument("--frames", type=int, default=30, help="frames per room")
     p.add_argument("--epochs", type=int, default=12)
-    p.add_argument("--size", type=parse_size, default=(160, 120))
+    p.add_argument("--size", type=size_arg, default=(160, 120))
     p.add_argument("--seed", type=int, default=0, help="seed of the room batches and of training")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", default=None, help="also keep the checkpoint here (.safetensors)")

@@ -85,4 +85,4 @@ def test_bad_size_flag_is_an_argparse_error(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["data", "synth", "x", "--size", "big"])
     assert exc.value.code == 2
-    assert "expected WxH" in capsys.readouterr().err
+    assert "--size: expected WIDTHxHEIGHT" in capsys.readouterr().err

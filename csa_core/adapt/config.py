@@ -147,12 +147,13 @@ def cpu() -> AdaptConfig:
 
     Differences from the paper, and why: far fewer NeRF steps and joint rounds (minutes, not
     a GPU hour): 2 rounds of 2 network epochs each, because on a CPU rendering the training
-    views dominates a round (about 4.5 s per 128x96 view, against 5 s for a network epoch);
+    views dominates a round (about 0.4 s per 128x96 view on 2 threads: 20 s for a scene's 48
+    views, against 4-5 s for a network epoch);
     a learning rate of 2e-5 (paper 1e-5; 1e-4 over-fitted the pseudo-labels'
     errors: on a synthetic office room, 4 epochs on fused labels lowered val mIoU from 23.5%
     to 21.1% at 1e-4 and kept it at 23.6% at 1e-5); a replay buffer of 12 pairs, because
-    rendering replay views on a CPU costs more than the adaptation itself (about 7 s per view
-    without sensor depth to guide the samples). Batch composition
+    rendering replay views on a CPU is slow (about 1.5 s per view on 2 threads, without sensor
+    depth to guide the samples). Batch composition
     and the 10% pre-training replay are kept.
     """
     return AdaptConfig(

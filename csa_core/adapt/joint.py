@@ -97,6 +97,7 @@ def joint_adapt(
             loss = (
                 sum(tuner.epoch(dataset, primary, secondary) for _ in range(per_round)) / per_round
             )
+            notify(training_progress, f"joint round {r}/{rounds}: network trained", (r - 0.6) / rounds)
             apply_adabn(model, camera, adabn_slice(config, pretrain), config.seg.seed, device)
             fresh = predict_frames(model, scene.train_frames, device=device)
             t_nerf = time.perf_counter()
@@ -104,6 +105,7 @@ def joint_adapt(
             nerf_trainer.set_labels(fresh)
             nerf_trainer.train(config.nerf.geometry_steps_per_round)
             nerf_trainer.train_semantics(config.nerf.steps_per_round)
+            notify(training_progress, f"joint round {r}/{rounds}: NeRF trained", (r - 0.4) / rounds)
             t_render = time.perf_counter()
             seconds["joint_nerf"] += t_render - t_nerf
             rendered, labels = render_pairs(nerf, scene)

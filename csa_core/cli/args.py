@@ -6,14 +6,14 @@ import argparse
 
 
 def size_arg(text: str) -> tuple[int, int]:
-    """Parse ``WxH`` into (width, height)."""
+    """argparse type for ``WxH`` -> (width, height) (:func:`csa_core.data.camera.parse_size`)."""
+    from csa_core.data.camera import parse_size
+    from csa_core.errors import CSAInputError
+
     try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WxH (e.g. 160x120), got {text!r}") from None
-    if w < 8 or h < 8 or w > 8192 or h > 8192:
-        raise argparse.ArgumentTypeError(f"width and height must be within 8..8192, got {text!r}")
-    return w, h
+        return parse_size(text)
+    except CSAInputError as err:
+        raise argparse.ArgumentTypeError(err.problem) from None
 
 
 def positive_int(text: str) -> int:

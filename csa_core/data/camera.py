@@ -10,6 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from csa_core.errors import CSAInputError
+
+MIN_SIZE_PX, MAX_SIZE_PX = 8, 8192
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -54,6 +58,20 @@ class Intrinsics:
     @classmethod
     def from_dict(cls, d: dict) -> Intrinsics:
         return cls(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
+
+
+def parse_size(text: str, field: str = "--size") -> tuple[int, int]:
+    """``"160x120"`` -> ``(160, 120)`` (width, height); anything else is a :class:`CSAInputError`
+    naming ``field``. The one parser of image sizes for the CLI, the server and the benchmarks."""
+    parts = str(text).lower().split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+        raise CSAInputError(field, f"expected WIDTHxHEIGHT such as 160x120, got {text!r}")
+    w, h = int(parts[0]), int(parts[1])
+    if not (MIN_SIZE_PX <= w <= MAX_SIZE_PX and MIN_SIZE_PX <= h <= MAX_SIZE_PX):
+        raise CSAInputError(
+            field, f"width and height must be within {MIN_SIZE_PX}..{MAX_SIZE_PX}, got {text!r}"
+        )
+    return w, h
 
 
 def pixel_rays(intr: Intrinsics, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -175,7 +175,6 @@ def fit_semantic_nerf(
     frames: Sequence[Frame] | None = None,
     steps: int | None = None,
     progress: bool = True,
-    callback: Callable[[int, dict[str, float]], None] | None = None,
     on_progress: ProgressCallback | None = None,
 ) -> tuple[SemanticNerf, FitStats]:
     """Fit a Semantic-NeRF to ``frames`` (default: the scene's training frames) and the labels of
@@ -183,9 +182,9 @@ def fit_semantic_nerf(
 
     ``config`` is a :class:`NerfConfig` or a preset name; ``steps`` overrides its step count.
     ``device``: ``None``/``"auto"`` picks CUDA when available. Returns the model (on ``device``,
-    occupancy grid estimated) and the fit's statistics. ``callback(step, metrics)`` is called
-    every 50 steps; ``on_progress(message, fraction)`` (:mod:`csa_core.progress`) every 10
-    steps and after the last. What either raises propagates unchanged and ends the fit.
+    occupancy grid estimated) and the fit's statistics. ``on_progress(message, fraction)``
+    (:mod:`csa_core.progress`) hears the step, loss and PSNR every 10 steps and after the last;
+    what it raises propagates unchanged and ends the fit.
     """
     cfg = preset(config) if isinstance(config, str) else config
     dev = resolve_device(device)
@@ -264,11 +263,10 @@ def fit_semantic_nerf(
             metrics["psnr"] = psnr(metrics["color"])
             if bar is not None:
                 bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}")
-            if callback is not None and step % 50 == 0:
-                callback(step, metrics)
             if on_progress is not None:
                 on_progress(
-                    f"NeRF step {step + 1}/{n_steps}  loss {metrics['loss']:.4f}",
+                    f"NeRF step {step + 1}/{n_steps}  loss {metrics['loss']:.4f}"
+                    f"  PSNR {metrics['psnr']:.2f}",
                     (step + 1) / n_steps,
                 )
         if bar is not None:

@@ -99,11 +99,16 @@ def run(ctx: JobContext) -> None:
         config.field.encoding.log2_table_size = p["log2_table_size"]
     total = p["steps"] or config.optim.steps
 
-    def on_step(step: int, metrics: dict[str, float]) -> None:
-        ctx.progress(0.05 + 0.9 * step / max(total, 1), f"step {step}/{total}  loss {metrics.get('loss', float('nan')):.4f}  PSNR {metrics.get('psnr', float('nan')):.2f}")
-
     ctx.progress(0.05, f"fitting ({p['preset']}, {total} steps)", force=True)
-    nerf, stats = fit_semantic_nerf(scene, label_folder=label_folder, config=config, device=torch_device(ctx), steps=p["steps"], progress=False, callback=on_step)
+    nerf, stats = fit_semantic_nerf(
+        scene,
+        label_folder=label_folder,
+        config=config,
+        device=torch_device(ctx),
+        steps=p["steps"],
+        progress=False,
+        on_progress=ctx.core_progress(0.05, 0.95),
+    )
     ctx.check()
     out = ctx.workdir / NERF_FILE
     save_checkpoint(nerf, out)

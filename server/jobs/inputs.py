@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from csa_core.data import Scene, read_scene
+from csa_core.data.camera import parse_size as camera_parse_size
 from csa_core.data.scene import NYU40_FOLDER
 from server.db.models import ModelVersion
 from server.db.models import Scene as SceneRow
@@ -14,10 +15,8 @@ from server.scene_folders import write_scene_folder
 
 
 def parse_size(text: str | None) -> tuple[int, int] | None:
-    if text is None:
-        return None
-    w, h = (int(v) for v in text.lower().split("x"))
-    return w, h
+    """A job's optional ``size`` parameter (``WxH``) as (width, height)."""
+    return None if text is None else camera_parse_size(text, "size")
 
 
 def torch_device(ctx: JobContext) -> str | None:

@@ -30,7 +30,15 @@ def test_joint_step_reports_nerf_steps_rounds_and_the_end(pretrained, target_sce
     messages = [m for m, _ in calls]
     assert messages[0].startswith("NeRF step 1/40")
     rounds = [m.split("  ")[0] for m in messages if m.startswith("joint round")]
-    assert rounds == ["joint round 1/2", "joint round 2/2"]
+    # inside every round: after the network's epochs, after the NeRF's steps, at its end
+    assert rounds == [
+        "joint round 1/2: network trained",
+        "joint round 1/2: NeRF trained",
+        "joint round 1/2",
+        "joint round 2/2: network trained",
+        "joint round 2/2: NeRF trained",
+        "joint round 2/2",
+    ]
 
 
 def test_an_exception_stops_the_fine_tuning(pretrained, target_scenes) -> None:

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from csa_core.data.camera import Intrinsics
+from csa_core.data.camera import parse_size as camera_parse_size
 from csa_core.data.scene import NYU40_FOLDER, Frame, Scene
 from csa_core.data.scene_io import write_scene
 from csa_core.data.synth.camera_path import NoPathError, camera_walk
@@ -38,13 +39,9 @@ def _check(frames: int, size: tuple[int, int], seed: int) -> tuple[int, int]:
 
 
 def parse_size(text: str) -> tuple[int, int]:
-    """``"160x120"`` -> (160, 120); a malformed size is a user error naming ``--size``."""
-    parts = text.lower().split("x")
-    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
-        raise CSAInputError("--size", f"expected WIDTHxHEIGHT such as 160x120, got {text!r}")
-    w, h = int(parts[0]), int(parts[1])
-    _check(1, (w, h), 0)
-    return w, h
+    """``"160x120"`` -> (160, 120) within the synthesiser's limits; a bad size is a user error
+    naming ``--size``."""
+    return _check(1, camera_parse_size(text), 0)
 
 
 def intrinsics_for(width: int, height: int, hfov_deg: float) -> Intrinsics:
