@@ -86,8 +86,7 @@ def load_7scenes(
         if not dpath.is_file():
             raise CSAInputError(dpath, "depth file missing")
         mm = imf.read_depth_mm(dpath)
-        mm = np.where(mm == KINECT_INVALID_MM, 0, mm).astype(np.uint16)
-        depth = mm.astype(np.float32) / 1000.0
+        depth = np.where(mm == KINECT_INVALID_MM, 0, mm).astype(np.float32) / 1000.0
         depth_cam = cam.scaled(mm.shape[1], mm.shape[0])
         if camera == "color":
             depth = register_depth(depth, depth_cam, full, color_camera.offset)
