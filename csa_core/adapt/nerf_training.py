@@ -3,7 +3,9 @@
 ``csa_core.nerf.fit_semantic_nerf`` always starts from a fresh field; joint training needs to
 continue from the pre-fit with the network's latest predictions as semantic targets.
 :class:`NerfLabelTrainer` does that with the NeRF's public sampling and rendering calls and
-the fit's loss (colour, depth and semantics, DESIGN.md "The method" step 2).
+the fit's loss (colour, depth and semantics, DESIGN.md "The method" step 2). A NeRF fitted
+with per-frame colour corrections (``appearance="affine"``) keeps them: each ray's colour is
+compared through its frame's correction, and the corrections train on with the field.
 """
 
 from __future__ import annotations
@@ -56,10 +58,14 @@ class NerfLabelTrainer:
         ]
         self.depth = torch.as_tensor(np.stack(depth).reshape(-1).astype(np.float32), device=dev)
         self.has_depth = bool((self.depth > 0).any())
+        self.appearance_index = _appearance_index(nerf, self.frames)
         self.labels: torch.Tensor | None = None
+        params = list(nerf.field.parameters())
+        if nerf.appearance is not None:
+            params += list(nerf.appearance.parameters())
         # A lower rate than the fit's start: the field is already fitted, only the labels moved.
         self.optimizer = torch.optim.Adam(
-            nerf.field.parameters(),
+            params,
             lr=lr or cfg.optim.lr * cfg.optim.final_lr_fraction,
             betas=cfg.optim.betas,
             eps=cfg.optim.eps,
@@ -139,7 +145,13 @@ class NerfLabelTrainer:
                 generator=self.generator,
             )
             out = self.nerf.render_samples(
-                origins, dirs, samples, semantics=self.labels is not None
+                origins,
+                dirs,
+                samples,
+                semantics=self.labels is not None,
+                appearance=None
+                if self.appearance_index is None
+                else self.appearance_index[ids // self.hw],
             )
             loss = total_loss(out, target, self.nerf.config.loss)
             self.optimizer.zero_grad(set_to_none=True)
@@ -151,3 +163,18 @@ class NerfLabelTrainer:
         if steps > 0:
             self.nerf.update_occupancy(decay=0.0, generator=self.generator)
         return terms
+
+
+def _appearance_index(nerf: SemanticNerf, frames: Sequence[Frame]) -> torch.Tensor | None:
+    """Each frame's row in the NeRF's colour corrections, (F,) on the NeRF's device; ``None``
+    when the NeRF has none. Raises ``ValueError`` naming a frame the NeRF was not fitted on."""
+    if nerf.appearance is None:
+        return None
+    rows = {name: i for i, name in enumerate(nerf.info.train_frames)}
+    missing = [f.name for f in frames if f.name not in rows]
+    if missing:
+        raise ValueError(
+            f"NeRF of scene {nerf.info.name} has per-frame colour corrections but was not fitted "
+            f"on frame(s) {', '.join(missing[:5])}: no correction to train them with"
+        )
+    return torch.tensor([rows[f.name] for f in frames], dtype=torch.long, device=nerf.device)

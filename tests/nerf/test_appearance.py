@@ -15,7 +15,7 @@ from tests.tiny_scenes import look_at_pose
 GAINS = (0.6, 1.0, 1.4)  # exposure of frame i is GAINS[i % 3]
 
 
-def _exposed_scene():
+def exposed_scene():
     scene = synthetic_scene(frames=9, size=(32, 24), seed=1)
     for i, f in enumerate(scene.frames):
         f.color = (
@@ -24,7 +24,7 @@ def _exposed_scene():
     return scene
 
 
-def _fit(scene, steps=150):
+def fit_with_corrections(scene, steps=150):
     cfg = tiny_config(steps=steps)
     cfg.appearance = "affine"
     return fit_semantic_nerf(scene, "label-nyu40", cfg, device="cpu", progress=False)[0]
@@ -46,8 +46,8 @@ def test_corrections_start_as_identity_and_stay_zero_mean():
 
 
 def test_fit_learns_each_frames_exposure_and_is_deterministic():
-    scene = _exposed_scene()
-    a, b = _fit(scene), _fit(scene)
+    scene = exposed_scene()
+    a, b = fit_with_corrections(scene), fit_with_corrections(scene)
     assert torch.equal(a.appearance.params, b.appearance.params)
     gain = a.appearance.centered()[:, :3].mean(dim=1).detach().numpy()  # mean log-gain per frame
     train = len(scene.train_frames)
@@ -62,8 +62,8 @@ def test_fit_learns_each_frames_exposure_and_is_deterministic():
 
 
 def test_checkpoint_round_trip_keeps_the_corrections_bit_exact(tmp_path):
-    scene = _exposed_scene()
-    nerf = _fit(scene, steps=20)
+    scene = exposed_scene()
+    nerf = fit_with_corrections(scene, steps=20)
     for dtype in ("float32", "float16"):
         path = tmp_path / f"{dtype}.safetensors"
         save_checkpoint(nerf, path, dtype=dtype)
