@@ -21,6 +21,20 @@ def run(capsys, *argv: str) -> tuple[int, str, str]:
     return code, out, err
 
 
+def test_building_the_parser_imports_neither_torch_nor_opencv():
+    code = "import sys; from csa_core.cli.main import build_parser; build_parser(); print(sorted(m for m in ('torch', 'cv2') if m in sys.modules))"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
+
+
+def test_import_7scenes_camera_choices_are_the_importers():
+    from csa_core.cli.data import CAMERA_CHOICES
+    from csa_core.data.sevenscenes import CAMERAS
+
+    assert CAMERA_CHOICES == CAMERAS
+
+
 def test_import_7scenes_and_info(tmp_path, capsys, seven_scenes_dir):
     code, out, _ = run(capsys, "data", "import-7scenes", str(seven_scenes_dir), str(tmp_path / "k"), "--every", "5", "--size", "80x60")
     assert code == 0 and "20 frames at 80x60" in out

@@ -9,6 +9,10 @@ import numpy as np
 
 from csa_core.cli.args import positive_int, size_arg
 
+# The importer's ``csa_core.data.sevenscenes.CAMERAS``, spelt out here so that building the
+# parser does not import OpenCV; a test keeps the two equal.
+CAMERA_CHOICES = ("color", "depth")
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("data", help="make, import, inspect and preview scene folders")
@@ -35,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     i.add_argument("--overwrite", action="store_true")
     i.add_argument(
         "--camera",
-        choices=("color", "depth"),
+        choices=CAMERA_CHOICES,
         default="color",
         help="color: move frames to the Kinect colour camera (default); depth: the raw depth-camera frames",
     )

@@ -6,41 +6,24 @@ Typical use::
     nerf, stats = fit_semantic_nerf(scene, "predictions", "fast")
     labels = render_pseudo_labels(nerf, scene, views="train")
     save_checkpoint(nerf, "scene.safetensors")
+
+Names are imported lazily, so ``csa_core.nerf.config`` (and the command line that reads its
+presets) loads without torch.
 """
 
-from csa_core.device import resolve_device
-from csa_core.nerf.checkpoint import checkpoint_info, load_checkpoint, save_checkpoint
-from csa_core.nerf.config import NerfConfig, preset
-from csa_core.nerf.fit import FitStats, fit_semantic_nerf
-from csa_core.nerf.label_noise import LabelNoiseConfig, corrupt_labels
-from csa_core.nerf.model import SemanticNerf
-from csa_core.nerf.render import (
-    RenderedView,
-    interpolate_pose,
-    novel_view_poses,
-    render_image,
-    render_pseudo_labels,
-    render_views,
-    write_rendered_views,
-)
+from __future__ import annotations
 
-__all__ = [
-    "FitStats",
-    "LabelNoiseConfig",
-    "NerfConfig",
-    "RenderedView",
-    "SemanticNerf",
-    "checkpoint_info",
-    "corrupt_labels",
-    "fit_semantic_nerf",
-    "interpolate_pose",
-    "load_checkpoint",
-    "novel_view_poses",
-    "preset",
-    "render_image",
-    "render_pseudo_labels",
-    "render_views",
-    "resolve_device",
-    "save_checkpoint",
-    "write_rendered_views",
-]
+from csa_core.lazy_exports import lazy_exports
+
+_EXPORTS = {
+    "checkpoint": ("checkpoint_info", "load_checkpoint", "save_checkpoint"),
+    "config": ("NerfConfig", "preset"),
+    "fit": ("FitStats", "fit_semantic_nerf"),
+    "label_noise": ("LabelNoiseConfig", "corrupt_labels"),
+    "model": ("SemanticNerf",),
+    "render": (
+        "RenderedView", "interpolate_pose", "novel_view_poses", "render_image", "render_pseudo_labels",
+        "render_views", "write_rendered_views",
+    ),
+}  # fmt: skip
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -34,20 +34,6 @@ router = APIRouter(prefix="/scenes/{scene_ref}", tags=["frames"], responses={**E
 _TEXT_LIMIT = 64 * 1024  # pose and intrinsics files are a few hundred bytes
 
 
-def frame_out(f: Frame) -> FrameOut:
-    return FrameOut(
-        id=f.id,
-        scene_id=f.scene_id,
-        name=f.name,
-        pose=f.pose,
-        color_sha256=f.color_sha256,
-        depth_sha256=f.depth_sha256,
-        labels_sha256=f.labels_sha256,
-        has_labels=f.labels_sha256 is not None,
-        created_at=f.created_at,
-    )
-
-
 async def _read(upload: UploadFile | None, field: str, limit: int) -> bytes | None:
     if upload is None:
         return None
@@ -120,13 +106,13 @@ async def upload_frame(
     outcome = _store_with_retry(db, services, scene, name, valid, replace)
     if not outcome.created:
         response.status_code = status.HTTP_200_OK
-    return FrameUploadOut(**frame_out(outcome.frame).model_dump(), created=outcome.created, replaced=outcome.replaced)
+    return FrameUploadOut(**FrameOut.model_validate(outcome.frame).model_dump(), created=outcome.created, replaced=outcome.replaced)
 
 
 @router.get("/frames", response_model=list[FrameOut])
 def list_frames(scene_ref: str, db: DbDep) -> list[FrameOut]:
     scene = get_scene(db, scene_ref)
-    return [frame_out(f) for f in db.scalars(select(Frame).where(Frame.scene_id == scene.id).order_by(Frame.order_key, Frame.name))]
+    return [FrameOut.model_validate(f) for f in db.scalars(select(Frame).where(Frame.scene_id == scene.id).order_by(Frame.order_key, Frame.name))]
 
 
 def _get_frame(db, scene: Scene, name: str) -> Frame:
@@ -138,7 +124,7 @@ def _get_frame(db, scene: Scene, name: str) -> Frame:
 
 @router.get("/frames/{name}", response_model=FrameOut)
 def show_frame(scene_ref: str, name: str, db: DbDep) -> FrameOut:
-    return frame_out(_get_frame(db, get_scene(db, scene_ref), name))
+    return FrameOut.model_validate(_get_frame(db, get_scene(db, scene_ref), name))
 
 
 @router.get(

@@ -28,26 +28,6 @@ JobId = Annotated[int, Path(ge=1, le=2**62)]
 router = APIRouter(prefix="/jobs", tags=["jobs"], responses=ERROR_RESPONSES)
 
 
-def job_out(job: Job) -> JobOut:
-    return JobOut(
-        id=job.id,
-        kind=job.kind,
-        status=job.status,
-        params=job.params or {},
-        lineage=job.lineage,
-        progress=job.progress,
-        message=job.message,
-        result=job.result,
-        error=job.error,
-        cancel_requested=job.cancel_requested,
-        attempts=job.attempts,
-        worker_id=job.worker_id,
-        created_at=job.created_at,
-        started_at=job.started_at,
-        finished_at=job.finished_at,
-    )
-
-
 @router.get("/kinds", response_model=list[JobKindOut], summary="the job kinds and whether this build can run them")
 def list_kinds() -> list[JobKindOut]:
     out = []
@@ -74,7 +54,7 @@ def create_job(body: Annotated[JobCreate, Body(discriminator="kind")], db: DbDep
     job.params, job.lineage = params, lineage
     queue.append_log(db, job.id, f"queued {kind.name}")
     db.commit()
-    return job_out(job)
+    return JobOut.model_validate(job)
 
 
 @router.get("", response_model=list[JobOut])
@@ -89,12 +69,12 @@ def list_jobs(
         q = q.where(Job.status == status_)
     if kind is not None:
         q = q.where(Job.kind == kind)
-    return [job_out(j) for j in db.scalars(q)]
+    return [JobOut.model_validate(j) for j in db.scalars(q)]
 
 
 @router.get("/{job_id}", response_model=JobOut)
 def show_job(job_id: JobId, db: DbDep) -> JobOut:
-    return job_out(get_job(db, job_id))
+    return JobOut.model_validate(get_job(db, job_id))
 
 
 @router.get("/{job_id}/log", response_model=JobLogOut, summary="the last lines of the job's log")
@@ -112,7 +92,7 @@ def cancel_job(job_id: JobId, db: DbDep) -> JobOut:
         raise APIError(409, "conflict", f"job {job_id} already ended ({job.status})")
     queue.request_cancel(db, job)
     db.commit()
-    return job_out(job)
+    return JobOut.model_validate(job)
 
 
 @router.get(
@@ -129,7 +109,7 @@ async def job_events(job_id: JobId, db: DbDep, services: ServicesDep) -> Streami
     def snapshot() -> JobOut | None:
         with session_scope(services.sessions) as s:
             job = s.get(Job, job_id)
-            return job_out(job) if job is not None else None
+            return JobOut.model_validate(job) if job is not None else None
 
     async def stream():
         last: str | None = None

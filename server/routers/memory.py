@@ -27,7 +27,7 @@ def nerf_out(n: NerfCheckpoint, scene_name: str) -> NerfOut:
         size_bytes=n.size_bytes,
         preset=n.preset,
         labels_source=n.labels_source,
-        quality=n.quality or {},
+        quality=n.quality,
         active=n.active,
         created_at=n.created_at,
     )

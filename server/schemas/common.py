@@ -3,9 +3,16 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Annotated
+from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    StringConstraints,
+)
 
 # A scene or model named by id (digits) or by name.
 Ref = Annotated[str, StringConstraints(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")] | Annotated[int, Field(ge=1, le=2**62)]
@@ -23,6 +30,16 @@ def _as_utc(value: dt.datetime) -> dt.datetime:
 
 # The database keeps naive UTC; answers carry the zone (RFC 3339).
 Timestamp = Annotated[dt.datetime, AfterValidator(_as_utc)]
+
+# A JSON column that may be NULL in the database and is answered as ``{}``.
+JsonObject = Annotated[dict[str, Any], BeforeValidator(lambda v: {} if v is None else v)]
+
+
+class RecordOut(BaseModel):
+    """An answer read off a database row by attribute name (``Model.model_validate(row)``)."""
+
+    model_config = ConfigDict(from_attributes=True)
+
 
 class ErrorDetail(BaseModel):
     code: str

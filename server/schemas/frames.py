@@ -1,11 +1,11 @@
 from __future__ import annotations
 
-from pydantic import BaseModel
+from pydantic import BaseModel, computed_field
 
-from server.schemas.common import Timestamp
+from server.schemas.common import RecordOut, Timestamp
 
 
-class FrameOut(BaseModel):
+class FrameOut(RecordOut):
     id: int
     scene_id: int
     name: str
@@ -13,8 +13,12 @@ class FrameOut(BaseModel):
     color_sha256: str
     depth_sha256: str
     labels_sha256: str | None
-    has_labels: bool
     created_at: Timestamp
+
+    @computed_field
+    @property
+    def has_labels(self) -> bool:
+        return self.labels_sha256 is not None
 
 
 class FrameUploadOut(FrameOut):

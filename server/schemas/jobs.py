@@ -6,7 +6,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from server.schemas.common import Name, Ref, Timestamp
+from server.schemas.common import JsonObject, Name, RecordOut, Ref, Timestamp
 
 Size = Annotated[str, Field(pattern=r"^\d{1,4}x\d{1,4}$", description="WxH, e.g. 160x120")]
 
@@ -93,11 +93,11 @@ JobCreate = Annotated[FitNerfJob | EvaluateJob | PretrainJob | AdaptJob, Field(d
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
 
-class JobOut(BaseModel):
+class JobOut(RecordOut):
     id: int
     kind: str
     status: JobStatus
-    params: dict[str, Any]
+    params: JsonObject
     lineage: str | None
     progress: float
     message: str

@@ -1,10 +1,8 @@
 from __future__ import annotations
 
-from typing import Any
-
 from pydantic import BaseModel
 
-from server.schemas.common import Timestamp
+from server.schemas.common import JsonObject, Timestamp
 
 
 class NerfOut(BaseModel):
@@ -17,7 +15,7 @@ class NerfOut(BaseModel):
     size_bytes: int
     preset: str
     labels_source: str
-    quality: dict[str, Any]
+    quality: JsonObject
     active: bool
     created_at: Timestamp
 
