@@ -39,21 +39,28 @@ def _reference_encoding(enc: HashEncoding, x: torch.Tensor) -> torch.Tensor:
     return torch.cat(feats, dim=1)
 
 
-def test_matches_direct_implementation_on_dense_and_hashed_levels():
+def _random_table_encoding(num_levels: int, log2_table_size: int, base: int, finest: int) -> HashEncoding:
+    """An encoding with 2 features per level whose table is filled with N(0, 1) values (the
+    default initialisation is too small to tell rows apart)."""
     cfg = HashEncodingConfig(
-        num_levels=6,
+        num_levels=num_levels,
         features_per_level=2,
-        log2_table_size=10,
-        base_resolution=4,
-        finest_resolution=64,
+        log2_table_size=log2_table_size,
+        base_resolution=base,
+        finest_resolution=finest,
     )
     enc = HashEncoding(cfg, generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
         enc.table.normal_(generator=torch.Generator().manual_seed(1))
+    return enc
+
+
+def test_matches_direct_implementation_on_dense_and_hashed_levels():
+    enc = _random_table_encoding(num_levels=6, log2_table_size=10, base=4, finest=64)
     x = torch.rand(50, 3, generator=torch.Generator().manual_seed(2))
     x[0] = torch.tensor([1.0, 1.0, 1.0])  # far corner of the cube
     x[1] = torch.tensor([0.0, 0.5, 1.0])
-    assert 0 < enc._num_dense < cfg.num_levels
+    assert 0 < enc._num_dense < enc.cfg.num_levels
     got = enc(x).double()
     torch.testing.assert_close(got, _reference_encoding(enc, x), rtol=1e-5, atol=1e-5)
 
@@ -82,16 +89,7 @@ def test_backward_scatters_into_the_touched_rows():
 def test_int32_hashing_matches_uint32_reference_at_fine_resolutions():
     # Cell coordinates up to 2048 times the primes overflow 32 bits many times over: the int32
     # arithmetic must still give the paper's uint32 hash modulo a 2^19 table.
-    cfg = HashEncodingConfig(
-        num_levels=3,
-        features_per_level=2,
-        log2_table_size=19,
-        base_resolution=512,
-        finest_resolution=2048,
-    )
-    enc = HashEncoding(cfg, generator=torch.Generator().manual_seed(0))
-    with torch.no_grad():
-        enc.table.normal_(generator=torch.Generator().manual_seed(1))
+    enc = _random_table_encoding(num_levels=3, log2_table_size=19, base=512, finest=2048)
     x = torch.rand(40, 3, generator=torch.Generator().manual_seed(5)) * 0.2 + 0.8
     assert enc._num_dense == 0
     torch.testing.assert_close(enc(x).double(), _reference_encoding(enc, x), rtol=1e-5, atol=1e-5)
