@@ -60,12 +60,10 @@ class NerfLabelTrainer:
         self.has_depth = bool((self.depth > 0).any())
         self.appearance_index = _appearance_index(nerf, self.frames)
         self.labels: torch.Tensor | None = None
-        params = list(nerf.field.parameters())
-        if nerf.appearance is not None:
-            params += list(nerf.appearance.parameters())
-        # A lower rate than the fit's start: the field is already fitted, only the labels moved.
+        # The field and, when fitted with them, the per-frame colour corrections. A lower rate
+        # than the fit's start: the field is already fitted, only the labels moved.
         self.optimizer = torch.optim.Adam(
-            params,
+            nerf.parameters(),
             lr=lr or cfg.optim.lr * cfg.optim.final_lr_fraction,
             betas=cfg.optim.betas,
             eps=cfg.optim.eps,

@@ -6,27 +6,18 @@ import pytest
 import torch
 
 from csa_core.adapt.nerf_training import NerfLabelTrainer
-from tests.nerf.test_appearance import GAINS, exposed_scene, fit_with_corrections
-
-
-def _log_gain_by_exposure(nerf, scene) -> list[float]:
-    gain = nerf.appearance.centered()[:, :3].mean(dim=1).detach()
-    train = len(scene.train_frames)
-    return [
-        float(gain[[i for i in range(train) if i % len(GAINS) == k]].mean())
-        for k in range(len(GAINS))
-    ]
+from tests.nerf.test_appearance import exposed_scene, fit_with_corrections, log_gain_by_exposure
 
 
 def test_label_trainer_trains_the_colour_corrections_of_each_frame():
     scene = exposed_scene()
     nerf = fit_with_corrections(scene, steps=30)
     before = nerf.appearance.params.detach().clone()
-    spread_before = _log_gain_by_exposure(nerf, scene)
+    spread_before = log_gain_by_exposure(nerf, scene)
     trainer = NerfLabelTrainer(nerf, scene, rays_per_step=512)
     trainer.set_labels({f.name: f.labels["label-nyu40"] for f in scene.train_frames})
     trainer.train(120)
-    after = _log_gain_by_exposure(nerf, scene)
+    after = log_gain_by_exposure(nerf, scene)
     assert not torch.equal(nerf.appearance.params, before)
     assert after[0] < after[1] < after[2], after
     # Trained on, the corrections separate the exposures further than the short fit left them.

@@ -24,6 +24,13 @@ def exposed_scene():
     return scene
 
 
+def log_gain_by_exposure(nerf, scene) -> list[float]:
+    """Mean log-gain of the colour corrections of the training frames of each exposure."""
+    gain = nerf.appearance.centered()[:, :3].mean(dim=1).detach()
+    train = len(scene.train_frames)
+    return [float(gain[[i for i in range(train) if i % len(GAINS) == k]].mean()) for k in range(len(GAINS))]
+
+
 def fit_with_corrections(scene, steps=150):
     cfg = tiny_config(steps=steps)
     cfg.appearance = "affine"
@@ -49,9 +56,7 @@ def test_fit_learns_each_frames_exposure_and_is_deterministic():
     scene = exposed_scene()
     a, b = fit_with_corrections(scene), fit_with_corrections(scene)
     assert torch.equal(a.appearance.params, b.appearance.params)
-    gain = a.appearance.centered()[:, :3].mean(dim=1).detach().numpy()  # mean log-gain per frame
-    train = len(scene.train_frames)
-    by_exposure = [gain[[i for i in range(train) if i % 3 == k]].mean() for k in range(3)]
+    by_exposure = log_gain_by_exposure(a, scene)
     assert by_exposure[0] < by_exposure[1] < by_exposure[2], by_exposure
     # The field holds the average appearance: a bright training frame renders darker without its
     # correction than with it.
