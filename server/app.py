@@ -2,7 +2,8 @@
 
 ``create_app()`` reads :class:`Settings` from the environment; tests and ``csa serve`` pass
 their own. The app opens the database (migrating it), the artifact store and, unless
-``CSA_EMBEDDED_WORKER=false``, starts a worker thread that runs queued jobs.
+``CSA_EMBEDDED_WORKER=false``, the executor that runs queued jobs (``CSA_EXECUTOR``: in this
+process, or on a Ray cluster; ``server/executors``).
 """
 
 from __future__ import annotations
@@ -14,8 +15,10 @@ from contextlib import asynccontextmanager
 from fastapi import Depends, FastAPI
 
 from csa_core import __version__
+from server import ui
 from server.auth import require_api_key, resolve_api_keys
 from server.errors import install_error_handlers
+from server.executors import make_executor
 from server.model_cache import ModelCache
 from server.nerf_cache import NerfCache
 from server.request_metrics import RequestMetricsMiddleware, RequestStats, RouteTemplates
@@ -34,7 +37,6 @@ from server.routers import (
 from server.services import open_services
 from server.settings import Settings
 from server.upload_limits import BodyLimitMiddleware
-from server.worker import Worker
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.nerf_cache = NerfCache(services.store, settings.model_cache_size, device)
         worker = None
         if settings.embedded_worker:
-            worker = Worker(services, mode="embedded")
+            worker = make_executor(services)
             worker.start()
         app.state.worker = worker
         try:
@@ -94,4 +96,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(prometheus.router, dependencies=secured)
     for module in (scenes, frames, jobs, models, memory, continual, inference, rendering):
         app.include_router(module.router, prefix=API_PREFIX, dependencies=secured)
+    app.include_router(ui.router)  # the dashboard at /ui: its own session auth (server/ui)
     return app

@@ -1,6 +1,9 @@
 """API errors: every 4xx/5xx answer is ``{"error": {"code", "message", "field"}}``.
 
 ``field`` names the request field at fault (``"depth"``, ``"params.scene_id"``) or is null.
+An unexpected exception is answered 500 on the same keep-alive connection (see
+:class:`UnhandledErrorMiddleware`); a value the database refuses (a number out of its range,
+a NUL character in text) is the client's input and is answered 422.
 """
 
 from __future__ import annotations
@@ -11,7 +14,9 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import DataError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from csa_core.errors import CSAInputError
 
@@ -61,7 +66,53 @@ def _field_of(loc: tuple[Any, ...] | list[Any]) -> str:
     return ".".join(parts) or "body"
 
 
+def _internal_error(exc: Exception) -> JSONResponse:
+    return JSONResponse(error_body("internal", f"internal error: {type(exc).__name__}"), status_code=500)
+
+
+class UnhandledErrorMiddleware:
+    """Answers 500 for an exception that escapes a route, and keeps the connection open.
+
+    Starlette's outermost error middleware also answers 500, but then re-raises, and uvicorn
+    closes the connection of a request whose application raised: a client's next request on
+    that keep-alive connection would fail too. This middleware sits inside the others, so the
+    request metrics still count the 500. Exceptions in ``passthrough`` belong to an outer
+    middleware (the upload limit answers 413) and go on; so does anything raised after the
+    answer started (a broken stream cannot be answered again).
+    """
+
+    def __init__(self, app: ASGIApp, passthrough: tuple[type[BaseException], ...] = ()):
+        self.app = app
+        self.passthrough = passthrough
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def tracking_send(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, receive, tracking_send)
+        except Exception as exc:
+            if started or isinstance(exc, self.passthrough):
+                raise
+            log.exception("unhandled error in %s %s", scope.get("method"), scope.get("path"))
+            await _internal_error(exc)(scope, receive, send)
+
+
 def install_error_handlers(app: FastAPI) -> None:
+    """The error answers; call before adding other middleware, so that
+    :class:`UnhandledErrorMiddleware` is the innermost."""
+    from server.upload_limits import BodyTooLarge  # imports this module
+
+    app.add_middleware(UnhandledErrorMiddleware, passthrough=(BodyTooLarge,))
+
     @app.exception_handler(APIError)
     async def _api_error(_: Request, exc: APIError) -> JSONResponse:
         return JSONResponse(error_body(exc.code, exc.message, exc.field), status_code=exc.status, headers=exc.headers)
@@ -83,7 +134,13 @@ def install_error_handlers(app: FastAPI) -> None:
         code = {401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed", 413: "too_large"}.get(exc.status_code, "http_error")
         return JSONResponse(error_body(code, str(exc.detail)), status_code=exc.status_code, headers=getattr(exc, "headers", None))
 
+    @app.exception_handler(DataError)
+    async def _refused_by_database(_: Request, exc: DataError) -> JSONResponse:
+        reason = str(getattr(exc, "orig", exc)).strip().splitlines()[0][:300]
+        log.warning("database refused a request's value: %s", reason)
+        return JSONResponse(error_body("invalid", f"a value of this request is not accepted by the database ({reason})"), status_code=422)
+
     @app.exception_handler(Exception)
     async def _unexpected(_: Request, exc: Exception) -> JSONResponse:
-        log.exception("unhandled error")
-        return JSONResponse(error_body("internal", f"internal error: {type(exc).__name__}"), status_code=500)
+        log.exception("unhandled error")  # raised outside the routes (in a middleware)
+        return _internal_error(exc)

@@ -2,7 +2,8 @@
 
 Every part is checked before anything is stored: images decode and are not larger than the
 limit (read from the header first), colour is 8-bit, depth is single-channel uint16
-millimetres, labels are NYU40 ids, the pose is a finite 4x4 camera-to-world matrix, and the
+millimetres, labels are NYU40 ids, the pose is a rigid 4x4 camera-to-world transform and the
+intrinsics a sane camera for the image (the core's rules, ``csa_core.data.camera``), and the
 sizes agree with each other and with the frames already in the scene. Errors name the field.
 """
 
@@ -16,8 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from csa_core.data import image_files
-from csa_core.data.camera import Intrinsics
+from csa_core.data.camera import Intrinsics, check_intrinsics, check_pose
 from csa_core.errors import CSAInputError
+from server.db.models import MAX_ID
 from server.errors import APIError, invalid
 from server.image_headers import image_format, image_size
 
@@ -70,6 +72,8 @@ class NonFinitePose(APIError):
 def check_frame_name(name: str, field: str = "name") -> str:
     if not FRAME_NAME.fullmatch(name):
         raise invalid(field, f"frame name {name!r} must be 1-64 letters, digits, '_', '-' or '.', starting with a letter or digit")
+    if name.isdigit() and int(name) > MAX_ID:  # numeric names are the frames' order keys
+        raise invalid(field, f"numeric frame name {name} is larger than {MAX_ID}")
     return name
 
 
@@ -108,18 +112,18 @@ def parse_pose(text: str, field: str, tmp: Path) -> np.ndarray:
     pose = _matrix(text, field, ((4, 4),), tmp)
     if not np.all(np.isfinite(pose)):
         raise NonFinitePose(422, "invalid", f"{field}: pose is not finite", field=field)
-    if not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-4):
-        raise invalid(field, "last row of a camera-to-world pose must be 0 0 0 1")
-    if abs(np.linalg.det(pose[:3, :3])) < 1e-6:
-        raise invalid(field, "rotation part of the pose is singular")
-    return pose
+    try:
+        return check_pose(pose, field)
+    except CSAInputError as e:
+        raise invalid(field, e.problem) from None
 
 
 def parse_intrinsics(text: str, field: str, size: tuple[int, int], tmp: Path) -> Intrinsics:
     K = _matrix(text, field, ((3, 3), (4, 4)), tmp)
-    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise invalid(field, "focal lengths must be finite and positive")
-    return Intrinsics.from_matrix(K, *size)
+    try:
+        return check_intrinsics(Intrinsics.from_matrix(K, *size), field)
+    except CSAInputError as e:
+        raise invalid(field, e.problem) from None
 
 
 def _same_aspect(a: tuple[int, int], b: tuple[int, int]) -> bool:

@@ -5,14 +5,15 @@ from __future__ import annotations
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from server.db.models import Job, ModelVersion, NerfCheckpoint, Scene
+from server.db.models import MAX_ID, Job, ModelVersion, NerfCheckpoint, Scene
 from server.errors import APIError, not_found
 
 
 def _as_id(ref: str | int) -> int | None:
     if isinstance(ref, int):
         return ref
-    return int(ref) if ref.isdigit() and len(ref) < 19 else None
+    ident = int(ref) if ref.isascii() and ref.isdigit() and len(ref) <= 10 else None
+    return ident if ident is not None and ident <= MAX_ID else None
 
 
 def get_scene(session: Session, ref: str | int) -> Scene:

@@ -6,6 +6,8 @@ import threading
 from collections import OrderedDict
 from typing import Any
 
+import numpy as np
+
 from server.artifacts import ArtifactStore
 
 
@@ -32,6 +34,15 @@ class ModelCache:
             while len(self._items) > self.size:
                 self._items.popitem(last=False)
         return net, card
+
+    def predict(self, sha256: str, rgb: np.ndarray) -> np.ndarray:
+        """NYU40 ids (H, W) of an (H, W, 3) uint8 RGB image by a stored checkpoint, at its
+        model card's input size; one prediction at a time (see :attr:`inference_lock`)."""
+        from csa_core.seg import predict_labels
+
+        net, card = self.get(sha256)
+        with self._inference_lock:
+            return predict_labels(net, rgb, device=self.device, size=tuple(card.input_size) if card.input_size else None)
 
     @property
     def inference_lock(self) -> threading.Lock:

@@ -1,4 +1,10 @@
-"""The model registry: segmentation checkpoints as versions with lineage, metrics and a current one."""
+"""The model registry: segmentation checkpoints as versions with lineage, metrics and a current one.
+
+A version's ``files`` map file names to checksums in the artifact store: always the checkpoint
+(``model.safetensors``) and, for a version made by a continual step that pools BatchNorm
+statistics, the lineage's per-scene BatchNorm memory after that step
+(``batchnorm_memory.safetensors``, ``csa_core.adapt.bn_memory``), which the next step loads.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +18,7 @@ from server.artifacts import ArtifactStore
 from server.db.models import ModelVersion
 
 CHECKPOINT_FILE = "model.safetensors"
+BATCHNORM_FILE = "batchnorm_memory.safetensors"
 
 
 def set_current(session: Session, model: ModelVersion) -> None:
@@ -34,10 +41,17 @@ def register_checkpoint(
     metrics: dict[str, Any] | None = None,
     meta: dict[str, Any] | None = None,
     make_current: bool | None = None,
+    extra_files: dict[str, Path] | None = None,
 ) -> ModelVersion:
     """Store a checkpoint file and add its version; ``make_current=None`` makes it current
-    only when no version is current yet."""
+    only when no version is current yet. ``extra_files`` (file name -> path, e.g.
+    :data:`BATCHNORM_FILE`) are stored beside it in the version's files."""
     stored = store.put_file(session, checkpoint, "model")
+    files = {CHECKPOINT_FILE: stored.sha256}
+    for file_name, path in (extra_files or {}).items():
+        if file_name == CHECKPOINT_FILE:
+            raise ValueError(f"register_checkpoint: {CHECKPOINT_FILE} is the checkpoint itself")
+        files[file_name] = store.put_file(session, path, "model").sha256
     model = ModelVersion(
         name=name,
         lineage=lineage,
@@ -45,7 +59,7 @@ def register_checkpoint(
         adapted_scene_id=adapted_scene_id,
         job_id=job_id,
         arch=arch,
-        files={CHECKPOINT_FILE: stored.sha256},
+        files=files,
         size_bytes=stored.size_bytes,
         metrics=metrics or {},
         meta=meta or {},

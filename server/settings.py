@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from functools import cached_property
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -39,12 +39,18 @@ class Settings(BaseSettings):
     max_model_upload_bytes: int = 1024 * MiB
     max_inference_upload_bytes: int = 32 * MiB
 
-    # Worker.
-    embedded_worker: bool = True  # start a worker thread inside the API process
+    # Jobs: where they run (docs/architecture.md, "Executors").
+    executor: Literal["embedded", "ray"] = "embedded"  # embedded: in this process; ray: on a Ray cluster
+    embedded_worker: bool = True  # run jobs from this process (false: API only, jobs wait in the queue)
+    ray_address: str = "local"  # a running cluster (host:port, "auto"), or "local": start one in this process
+    ray_num_cpus: int | None = None  # CPUs of the "local" cluster (default: all of this machine's)
+    ray_cpus_per_job: float = 1.0  # CPUs each job's task asks for (and its torch threads)
+    ray_max_running_jobs: int | None = None  # jobs handed to the cluster at once (default: its GPUs, else CPUs / per job)
+    ray_cancel_grace_seconds: float = 30.0  # a cancelled task still running after this is killed
     worker_poll_seconds: float = 1.0
-    lease_seconds: float = 30.0  # a running job whose lease is this old belongs to a dead worker
+    lease_seconds: float = 30.0  # a running job whose lease is this old belongs to a dead API process
     heartbeat_seconds: float = 5.0
-    max_attempts: int = 2  # a job lost with its worker this many times fails instead of re-queueing
+    max_attempts: int = 2  # a job whose process (or Ray worker) died this many times fails instead of re-queueing
     job_log_lines: int = 2000  # log lines kept per job
 
     # Server-sent events of job progress.

@@ -39,6 +39,7 @@ class BodyLimitMiddleware:
         self.rules = limits_for(settings)
 
     def _limit(self, path: str) -> tuple[int, str]:
+        path = path.removeprefix("/ui")  # the dashboard serves the same routes under /ui/api/v1 (server/ui)
         for pattern, limit, what in self.rules:
             if pattern.match(path):
                 return limit, what

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
+from importlib.metadata import EntryPoint, entry_points
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from csa_core.cli.main import main
+from csa_core.cli import main as cli_main
+from csa_core.cli.main import GROUPS, PLUGIN_GROUP, build_parser, main
 from csa_core.data.scene_io import write_label_folder, write_scene
 from tests.tiny_scenes import make_random_scene
 
@@ -21,11 +25,66 @@ def run(capsys, *argv: str) -> tuple[int, str, str]:
     return code, out, err
 
 
-def test_building_the_parser_imports_neither_torch_nor_opencv():
-    code = "import sys; from csa_core.cli.main import build_parser; build_parser(); print(sorted(m for m in ('torch', 'cv2') if m in sys.modules))"
+def test_building_the_parser_imports_neither_torch_nor_opencv_nor_the_web_stack():
+    heavy = ("torch", "cv2", "fastapi", "uvicorn", "sqlalchemy", "pydantic_settings")
+    code = f"import sys; from csa_core.cli.main import build_parser; build_parser(); print(sorted(m for m in {heavy!r} if m in sys.modules))"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]"
+    assert proc.stderr == ""  # every declared plugin loaded, no note
+
+
+def test_serve_comes_from_the_services_entry_point():
+    declared = {ep.name: ep.value for ep in entry_points(group=PLUGIN_GROUP)}
+    assert declared == {"serve": "server.cli:register_serve"}
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    assert list(sub.choices) == [*GROUPS, "serve"]
+    args = build_parser().parse_args(["serve", "--port", "8123", "--no-worker", "--data-dir", "d"])
+    assert (args.port, args.no_worker, args.host, args.data_dir, args.func.__module__) == (8123, True, "127.0.0.1", Path("d"), "server.cli")
+
+
+def test_serve_help_through_the_console_entry(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["serve", "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: csa serve") and "--database-url" in out
+
+
+def register_hello(sub: argparse._SubParsersAction) -> None:
+    """A plugin command for the tests below: ``csa hello NAME`` prints a greeting."""
+    p = sub.add_parser("hello", help="greet")
+    p.add_argument("name")
+    p.set_defaults(func=lambda args: print(f"hello {args.name}"))
+
+
+def test_plugins_add_commands_and_a_missing_one_is_a_note(monkeypatch, capsys):
+    plugins = [
+        EntryPoint("hello", "tests.test_cli:register_hello", PLUGIN_GROUP),
+        EntryPoint("hello", "tests.test_cli:register_hello", PLUGIN_GROUP),  # the same one twice
+        EntryPoint("gone", "no_such_package.cli:register", PLUGIN_GROUP),
+        EntryPoint("data", "tests.test_cli:register_hello", PLUGIN_GROUP),  # a built-in name
+    ]
+    monkeypatch.setattr(cli_main, "entry_points", lambda group: [ep for ep in plugins if ep.group == group])
+    code, out, err = run(capsys, "hello", "world")
+    assert (code, out) == (0, "hello world\n")
+    notes = err.splitlines()
+    assert len(notes) == 2
+    assert notes[0].startswith("csa: note: command 'data' from tests.test_cli:register_hello ignored")
+    assert notes[1].startswith("csa: note: command 'gone' unavailable (no_such_package.cli:register)")
+
+
+def test_service_flags_override_the_environment(monkeypatch, tmp_path):
+    pytest.importorskip("pydantic_settings")
+    from server.cli import settings_from_args
+
+    monkeypatch.setenv("CSA_DATA_DIR", str(tmp_path / "from-env"))
+    monkeypatch.setenv("CSA_DATABASE_URL", "sqlite:///env.db")
+    args = build_parser().parse_args(["serve", "--data-dir", str(tmp_path / "flag")])
+    settings = settings_from_args(args, embedded_worker=False)
+    assert (settings.data_dir, settings.database_url, settings.embedded_worker) == (tmp_path / "flag", "sqlite:///env.db", False)
+    settings = settings_from_args(build_parser().parse_args(["serve"]))
+    assert (settings.data_dir, settings.database_url) == (tmp_path / "from-env", "sqlite:///env.db")
 
 
 def test_import_7scenes_camera_choices_are_the_importers():

@@ -1,10 +1,12 @@
-"""Collapse of pseudo-labels, and the guard against it (ours; DESIGN.md "Known weaknesses").
+"""Collapse of pseudo-labels, and the guard against it (ours; docs/method.md "Known weaknesses").
 
 On badly exposed scenes or scenes without depth, joint training can drive the NeRF and the
-network towards one class: each supervises the other with ever more uniform labels. Two
-signals catch it without ground truth: the entropy of the labels' class histogram (a room
-shows many classes) and the agreement with the previous model's predictions (adaptation
-should refine them, not replace them).
+network towards one class: each supervises the other with ever more uniform labels. Three
+signals catch it without ground truth, each measured against the previous model's
+predictions on the same views: the entropy of the labels' class histogram, the share of
+their dominant class, and their agreement with the predictions (adaptation should refine
+them, not replace them). Fixed bars set on one family of rooms misfire on another (a real
+room whose views are 86% wall), so no bar is absolute.
 """
 
 from __future__ import annotations
@@ -85,6 +87,7 @@ class CollapseReport:
     reference_entropy: float
     dominant_class: int
     dominant_fraction: float
+    dominant_limit: float  # NaN without the previous model's predictions to compare with
     agreement: float
     collapsed: bool
     reasons: list[str] = field(default_factory=list)
@@ -99,30 +102,39 @@ def detect_collapse(
     config: CollapseConfig | None = None,
     prior_entropy: float | None = None,
 ) -> CollapseReport:
-    """Judge pseudo-labels ``labels`` against the previous model's predictions ``previous``
-    on the same frames and, when given, ``prior_entropy`` (the class entropy of the
-    pre-training labels: what a healthy room looks like).
+    """Judge label maps ``labels`` against the previous model's predictions ``previous`` on
+    the same frames, or, without ``previous`` (judging the predictions themselves), against
+    ``prior_entropy`` (the class entropy of the pre-training labels).
 
-    The reference entropy is the larger of the previous predictions' entropy and the prior,
-    so predictions that are collapsed themselves (a scene the network cannot see) do not
-    lower the bar.
+    With ``previous``, every bar is relative to the predictions (``CollapseConfig``): the
+    labels' entropy against the predictions' entropy, their dominant class against the
+    predictions' dominant class, and their agreement with the predictions; the prior plays no
+    part. A scene's own class mix is so never a collapse: a room whose views are mostly wall,
+    seen so by the network, passes; labels that turned most of what the network saw as other
+    classes into one class do not. Without ``previous`` the one bar is the entropy against
+    the prior: a network that sees one class where the pre-training rooms showed many.
     """
     cfg = config or CollapseConfig()
     entropy = label_entropy(labels)
-    references = [label_entropy(previous)] if previous is not None else []
-    if prior_entropy is not None:
-        references.append(float(prior_entropy))
-    reference = max(references) if references else float("nan")
     cls, frac = dominant_fraction(labels)
-    agree = agreement(labels, previous) if previous is not None else float("nan")
     reasons = []
+    if previous is None:
+        reference = float(prior_entropy) if prior_entropy is not None else float("nan")
+        agree = float("nan")
+        dominant_limit = float("nan")
+    else:
+        reference = label_entropy(previous)
+        agree = agreement(labels, previous)
+        _, previous_frac = dominant_fraction(previous)
+        dominant_limit = previous_frac + cfg.max_dominant_gain * (1.0 - previous_frac)
     if math.isfinite(reference) and entropy < cfg.min_entropy_ratio * reference:
         reasons.append(
             f"class entropy {entropy:.2f} < {cfg.min_entropy_ratio:g} x reference {reference:.2f} nats"
         )
-    if frac > cfg.max_dominant_fraction:
+    if math.isfinite(dominant_limit) and frac > dominant_limit:
         reasons.append(
-            f"class {cls} covers {100 * frac:.0f}% of the pixels (limit {100 * cfg.max_dominant_fraction:.0f}%)"
+            f"class {cls} covers {100 * frac:.0f}% of the pixels (limit {100 * dominant_limit:.0f}%: "
+            f"the predictions' dominant class plus {100 * cfg.max_dominant_gain:.0f}% of the rest)"
         )
     if math.isfinite(agree) and agree < cfg.min_agreement:
         reasons.append(
@@ -133,6 +145,7 @@ def detect_collapse(
         reference_entropy=reference,
         dominant_class=cls,
         dominant_fraction=frac,
+        dominant_limit=dominant_limit,
         agreement=agree,
         collapsed=bool(reasons),
         reasons=reasons,

@@ -1,12 +1,13 @@
-"""Continual adaptation over a sequence of scenes (DESIGN.md "Remember" and "Protocols").
+"""Continual adaptation over a sequence of scenes (docs/method.md "Remember" and "Protocols and metrics").
 
-Step i: adapt to scene i with the run's method, then score every scene's validation views
+Step i: adapt to scene i with the run's method (:func:`csa_core.adapt.step.continual_step`,
+the step the service's adapt job runs too), then score every scene's validation views
 (future ones too: FWT needs R[i-1, i]) to fill row i of R. For our method (the default) a
-step renders the replay buffer from the memory bank (scenes 0..i-1), adapts with it and with
-the pre-training slice, and adds scene i's NeRF to the bank; the baselines are in
-:mod:`csa_core.adapt.methods`. b[j] is the pre-trained network on scene j. Results go to
-``out/results.json`` after every step, with the full config, so an interrupted run still
-leaves its finished steps.
+step renders the replay buffer from the memory bank (scenes 0..i-1, kept in ``out/memory``),
+adapts with it and with the pre-training slice, and adds scene i's NeRF to the bank; the
+baselines are in :mod:`csa_core.adapt.methods`. b[j] is the pre-trained network on scene j.
+Results go to ``out/results.json`` after every step, with the full config, so an
+interrupted run still leaves its finished steps.
 """
 
 from __future__ import annotations
@@ -21,9 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from csa_core.adapt.bn_memory import BatchNormMemory
 from csa_core.adapt.config import AdaptConfig
-from csa_core.adapt.methods import MethodContext, check_method, make_method, pretrain_context
+from csa_core.adapt.memory_bank import MemoryBank
+from csa_core.adapt.methods import check_method
+from csa_core.adapt.step import ContinualState, continual_step
 from csa_core.atomic_io import write_text_atomic
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.errors import CSAInputError
@@ -113,8 +115,10 @@ def run_continual(
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     device = config.seg.device
-    pretrain, prior = pretrain_context(pretrain_scenes, config)
-    runner = make_method(method, MethodContext(config, out, pretrain, prior))
+    state = ContinualState.start(
+        config, method, bank=MemoryBank(out / "memory"), pretrain_scenes=pretrain_scenes
+    )
+    runner = state.method
     T = len(scenes)
     b = val_mious(model, scenes, device)
     R = np.full((T, T), np.nan)
@@ -130,20 +134,11 @@ def run_continual(
             "pretrain_scenes": [s.name for s in pretrain_scenes],
         },
     )
-    if pretrain is not None:
-        result.memory_bytes["pretrain_replay"] = pretrain.nbytes()
-    bn_memory = (
-        BatchNormMemory()
-        if config.adabn and config.pool_batchnorm and runner.reestimates_batchnorm
-        else None
-    )
+    if state.pretrain is not None:
+        result.memory_bytes["pretrain_replay"] = state.pretrain.nbytes()
     for i, scene in enumerate(scenes):
         t0 = time.perf_counter()
-        record = runner.step(model, scene)
-        if bn_memory is not None:
-            bn_memory.add(scene.name, model)
-            bn_memory.apply(model)
-            result.memory_bytes["batchnorm_statistics"] = bn_memory.nbytes()
+        record = continual_step(state, model, scene)
         t_eval = time.perf_counter()
         R[i] = val_mious(runner.reported(model), scenes, device)
         record["seconds"] = {
@@ -152,7 +147,6 @@ def run_continual(
             "step": time.perf_counter() - t0,
         }
         record["step"] = i
-        record["memory_bytes"] = runner.memory_bytes()
         record["R_row"] = R[i].tolist()
         result.steps.append(record)
         log.info(

@@ -1,15 +1,16 @@
-"""One-step adaptation to one scene without its labels (DESIGN.md "The method" step 4).
+"""One-step adaptation to one scene without its labels (docs/method.md "Adapt").
 
 Modes: ``gi_nl`` fine-tunes on the camera images with the NeRF's labels, ``ni_nl`` on the
 NeRF's rendered images with its labels, ``joint`` alternates network and NeRF updates
 (:mod:`csa_core.adapt.joint`). Before scoring on camera images the BatchNorm statistics are
 re-estimated on the scene's camera images (AdaBN), which matters most after training on
-rendered ones. Replay pairs and the pre-training slice join the batches as DESIGN.md says.
+rendered ones. Replay pairs and the pre-training slice join the batches as docs/method.md "Remember" says.
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 import math
 import time
@@ -22,7 +23,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from csa_core.adapt.collapse import GuardDecision, detect_collapse, guard
-from csa_core.adapt.config import AdaptConfig
+from csa_core.adapt.config import AdaptConfig, NerfBudget
 from csa_core.adapt.pseudo_labels import PseudoLabels, label_miou, make_pseudo_labels
 from csa_core.adapt.replay import MixedBatchSampler, PretrainReplay, ReplayBuffer
 from csa_core.data.scene import NYU40_FOLDER, Scene
@@ -89,8 +90,10 @@ class SegFinetuner:
         )
         self.epochs_done = 0
 
-    def epoch(self, dataset: SegmentationDataset, primary: int, secondary: int) -> float:
-        """One pass; returns the mean loss."""
+    def batches(self, primary: int, secondary: int) -> MixedBatchSampler:
+        """The index batches of the next epoch (``primary`` current-or-buffer items, then
+        ``secondary`` pre-training items); seeds the epoch's augmentation draws. The caller
+        that steps through them itself counts the epoch in ``epochs_done``."""
         r = self.config.replay
         per_batch = self.config.seg.batch_size
         pre = min(r.pretrain_per_batch, per_batch - 1) if secondary else 0
@@ -102,6 +105,11 @@ class SegFinetuner:
             seed=self.config.seg.seed + 1000 * self.epochs_done,
         )
         torch.manual_seed(self.config.seg.seed + self.epochs_done)  # augmentation draws
+        return sampler
+
+    def epoch(self, dataset: SegmentationDataset, primary: int, secondary: int) -> float:
+        """One pass; returns the mean loss."""
+        sampler = self.batches(primary, secondary)
         loss = self.trainer.run_epoch(DataLoader(dataset, batch_sampler=sampler))
         self.epochs_done += 1
         return loss
@@ -160,6 +168,9 @@ class OneStepResult:
     seconds: dict[str, float] = field(default_factory=dict)
     trained: bool = True
     nerf: SemanticNerf | None = None
+    # NeRF steps taken: "fit" (before the pseudo-labels), "semantic" (semantic head alone
+    # after it) and "joint" (during joint training).
+    nerf_steps: dict[str, int] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -174,6 +185,7 @@ class OneStepResult:
             "history": self.history,
             "seconds": self.seconds,
             "trained": self.trained,
+            "nerf_steps": self.nerf_steps,
         }
 
 
@@ -214,6 +226,15 @@ def finetune_on_labels(
     return losses
 
 
+def step_nerf_budget(config: AdaptConfig, scene: Scene) -> NerfBudget:
+    """``config.nerf`` with the fit before the pseudo-labels in steps for ``scene``: its
+    epochs (:meth:`~csa_core.adapt.config.NerfBudget.fit_steps`, in ``config.mode``) times
+    the scene's training views. :func:`~csa_core.adapt.pseudo_labels.nerf_config` of it is
+    the NeRF config the step fits."""
+    steps = config.nerf.fit_steps(config.mode, len(scene.train_frames))
+    return dataclasses.replace(config.nerf, prefit_steps=steps)
+
+
 def begin_step(
     model: SegmentationNet,
     scene: Scene,
@@ -225,9 +246,10 @@ def begin_step(
     pretrain: PretrainReplay | None = None,
 ) -> tuple[OneStepResult, PseudoLabels, dict[str, float]]:
     """The common start of every mode: score before (optional), re-estimate BatchNorm
-    statistics on the scene's camera images (with ``config.adabn``), fit the NeRF on the
-    network's predictions, render pseudo-labels, check them for collapse at ``stage``.
-    ``on_progress`` is the whole step's; this part reports up to ``PSEUDO_LABELS_DONE``.
+    statistics on the scene's camera images (``config.adabn_before_labels``), fit the NeRF on
+    the network's predictions (:func:`step_nerf_budget`), render pseudo-labels, check them
+    for collapse at ``stage``. ``on_progress`` is the whole step's; this part reports up to
+    ``PSEUDO_LABELS_DONE``.
 
     The AdaBN before predicting matters: a network trained from scratch on another domain
     labels a new scene with stale BatchNorm statistics far worse (measured on a synthetic
@@ -237,7 +259,7 @@ def begin_step(
     device = config.seg.device
     t0 = time.perf_counter()
     before = evaluate(model, scene, device) if evaluate_before else {}
-    if config.adabn:
+    if config.adabn_before_labels:
         apply_adabn(
             model,
             [f.color for f in scene.train_frames],
@@ -246,8 +268,9 @@ def begin_step(
             device,
         )
     t_eval = time.perf_counter() - t0
+    budget = step_nerf_budget(config, scene)
     nerf, pseudo = make_pseudo_labels(
-        model, scene, config.nerf, device, sub_progress(on_progress, 0.0, PSEUDO_LABELS_DONE)
+        model, scene, budget, device, sub_progress(on_progress, 0.0, PSEUDO_LABELS_DONE)
     )
     seconds = {"evaluate": t_eval, **pseudo.seconds}
     decision = check_labels(stage, pseudo.labels, pseudo, config, prior_entropy)
@@ -262,6 +285,7 @@ def begin_step(
         final_label_miou=pseudo_miou,
         decisions=[decision],
         nerf=nerf,
+        nerf_steps={"fit": budget.prefit_steps, "semantic": budget.semantic_steps},
     )
     return result, pseudo, seconds
 
@@ -278,7 +302,9 @@ def adapt_one_step(
 ) -> OneStepResult:
     """Adapt ``model`` in place to ``scene`` (its labels are read only to score) with
     ``config.mode``; returns the scores before and after, pseudo-label quality, the guard's
-    decisions and timings. The fitted NeRF is in ``result.nerf`` for the memory bank.
+    decisions and timings. The fitted NeRF is in ``result.nerf``, for the memory bank when
+    ``result.trained`` (after a ``skip`` the guard rejected its labels; after a
+    ``stop_joint`` it is back in its state before the rejected round).
 
     ``on_progress(message, fraction)`` (:mod:`csa_core.progress`) hears the NeRF fit's steps,
     every fine-tuning epoch (every joint round) and the end. What it raises propagates
@@ -312,7 +338,7 @@ def adapt_one_step(
             sub_progress(on_progress, PSEUDO_LABELS_DONE, TRAINING_DONE),
         )
         result.history = [{"epoch": k + 1, "loss": loss} for k, loss in enumerate(losses)]
-        if config.adabn:
+        if config.adabn_after_training(rendered):
             apply_adabn(
                 model, pseudo.images(False), adabn_slice(config, pretrain), config.seg.seed, device
             )

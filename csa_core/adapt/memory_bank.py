@@ -1,8 +1,10 @@
-"""The long-term memory: one Semantic-NeRF checkpoint per visited scene, in one folder.
+"""The long-term memory: one Semantic-NeRF checkpoint per visited scene.
 
-Each scene is a safetensors file written by ``csa_core.nerf.checkpoint`` (tensors plus JSON
+:class:`NerfMemory` is what a continual step needs of a memory bank (the scenes, a scene's
+NeRF, adding one, the sizes); :class:`MemoryBank` keeps it in one folder, the service keeps
+it in its artifact store. In the folder, each scene is a safetensors file written by ``csa_core.nerf.checkpoint`` (tensors plus JSON
 metadata, never pickled); ``index.json`` lists the scenes in the order they were added with
-the size of each file, which is the per-scene memory footprint (DESIGN.md "Protocols").
+the size of each file, which is the per-scene memory footprint (docs/method.md "Protocols and metrics").
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import json
 import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Protocol
 
 from csa_core.atomic_io import write_text_atomic
 from csa_core.errors import CSAInputError
@@ -18,6 +21,27 @@ from csa_core.nerf.checkpoint import load_checkpoint, save_checkpoint
 from csa_core.nerf.model import SemanticNerf
 
 INDEX = "index.json"
+
+
+class NerfMemory(Protocol):
+    """A memory bank as a continual step uses it (:mod:`csa_core.adapt.step`)."""
+
+    @property
+    def scenes(self) -> list[str]:
+        """Scene names, oldest first."""
+        ...
+
+    def load(self, scene: str) -> SemanticNerf:
+        """The NeRF remembered for ``scene``, as stored (read back from its checkpoint)."""
+        ...
+
+    def add(self, scene: str, nerf: SemanticNerf) -> object:
+        """Store ``nerf`` as the memory of ``scene`` (replacing an earlier one of that name)."""
+        ...
+
+    def bytes_per_scene(self) -> dict[str, int]:
+        """Stored size of each scene's NeRF."""
+        ...
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,11 @@
-"""The methods one continual run can use, behind one small interface (DESIGN.md "Baselines").
+"""The methods one continual run can use, behind one small interface (docs/method.md "Baselines").
 
 :func:`csa_core.adapt.continual.run_continual` owns the protocol: the scenes and their order,
-R and b, the continual metrics, ``results.json``. A method owns what happens inside one step
-and what it keeps between steps, so every method is scored by the same code on the same views:
+R and b, the continual metrics, ``results.json``. :func:`csa_core.adapt.step.continual_step`
+owns a step: it calls the method, then pools BatchNorm statistics; what the run keeps between
+steps (the NeRF memory bank, the BatchNorm records, the pre-training slice) is its
+:class:`~csa_core.adapt.step.ContinualState`. A method owns what happens inside one step and
+the memory only it keeps, so every method is scored by the same code on the same views:
 
 - ``ours``: NeRF pseudo-labels in ``config.mode`` (GI+NL, NI+NL or joint), replay rendered
   from the NeRF memory bank, the pre-training slice. Stores one NeRF checkpoint per scene.
@@ -16,20 +19,19 @@ and what it keeps between steps, so every method is scored by the same code on t
   kind: the lower bound that shows what the 3D fusion and the memory add.
 
 Mapping and the lower bound train with the same loop as ours (Adam, batch composition with
-the pre-training slice where there is one, AdaBN afterwards), so a difference in R comes from
-the labels and the memory, not from the optimiser. Mapping's own :func:`mapping_adapt` uses
+the pre-training slice where there is one), so a difference in R comes from the labels and
+the memory, not from the optimiser. AdaBN (``AdaptConfig.adabn``, placed by
+``adabn_placement``) applies to every method alike, CoTTA included, so a comparison can be
+made with it on and off. Mapping's own :func:`mapping_adapt` uses
 the segmentation trainer instead, which cannot mix in the pre-training slice.
 """
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from torch import nn
 
@@ -48,15 +50,26 @@ from csa_core.adapt.finetune import (
     adabn_slice,
     adapt_one_step,
     apply_adabn,
-    evaluate,
     finetune_on_labels,
 )
-from csa_core.adapt.memory_bank import MemoryBank
 from csa_core.adapt.pseudo_labels import label_miou, predict_frames
 from csa_core.adapt.replay import PretrainReplay, ReplayBuffer
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.errors import CSAInputError
+from csa_core.progress import ProgressCallback, notify
 from csa_core.seg.models import SegmentationNet
+
+if TYPE_CHECKING:
+    from csa_core.adapt.step import ContinualState
+
+# What a step's record says when our method banked no NeRF, per guard decision.
+NOT_BANKED = {
+    "skip": "the collapse guard skipped the scene: no NeRF banked, later steps replay nothing of it",
+    "fallback_predictions": (
+        "the collapse guard rejected the NeRF's labels and the network trained on its own "
+        "predictions: no NeRF banked, later steps replay nothing of this scene"
+    ),
+}
 
 # Methods of the continual protocol; "ours" runs config.mode.
 METHODS: tuple[str, ...] = ("ours", "mapping", "cotta", "finetune")
@@ -64,50 +77,53 @@ METHODS: tuple[str, ...] = ("ours", "mapping", "cotta", "finetune")
 ONE_STEP_METHODS: tuple[str, ...] = (*MODES, "mapping", "cotta", "finetune")
 
 
-@dataclass
-class MethodContext:
-    """What every method may use: the run's config, its output folder (the memory bank lives
-    in ``out/memory``), the pre-training slice and the guard's prior entropy."""
-
-    config: AdaptConfig
-    out: Path
-    pretrain: PretrainReplay | None = None
-    prior_entropy: float | None = None
-
-
 class ContinualMethod:
-    """One method of the continual protocol. ``step`` adapts ``model`` in place to one scene
-    and returns the step's record for ``results.json``; ``reported`` is the network that is
-    scored and saved; ``memory_bytes`` is what the method stores after the steps so far,
-    with ``method_total`` the bytes that count in the comparison of methods."""
+    """One method of the continual protocol, with the run's ``config``. ``step`` adapts
+    ``model`` in place to one scene, using and updating the run's ``state``, and returns the
+    step's record for ``results.json`` (``trained: False`` when the scene was skipped);
+    ``reported`` is the network that is scored and saved; ``memory_bytes`` is what the
+    method stores after the steps so far, with ``method_total`` the bytes that count in the
+    comparison of methods. Call ``step`` through :func:`csa_core.adapt.step.continual_step`."""
 
     name: ClassVar[str] = ""
-    # Whether a step ends with AdaBN on the scene (with ``config.adabn``), so that
-    # run_continual pools the adapted scenes' statistics (csa_core.adapt.bn_memory).
+    # Whether a step ends with AdaBN on the scene (with ``config.adabn``), so that the run
+    # pools the adapted scenes' statistics (csa_core.adapt.bn_memory).
     reestimates_batchnorm: ClassVar[bool] = True
 
-    def __init__(self, context: MethodContext):
-        self.context = context
+    def __init__(self, config: AdaptConfig):
+        self.config = config
 
-    @property
-    def config(self) -> AdaptConfig:
-        return self.context.config
-
-    def step(self, model: SegmentationNet, scene: Scene) -> dict[str, Any]:
+    def step(
+        self,
+        state: ContinualState,
+        model: SegmentationNet,
+        scene: Scene,
+        on_progress: ProgressCallback | None = None,
+    ) -> dict[str, Any]:
         raise NotImplementedError
 
     def reported(self, model: SegmentationNet) -> nn.Module:
         return model
 
-    def memory_bytes(self) -> dict[str, Any]:
+    def memory_bytes(self, state: ContinualState) -> dict[str, Any]:
         return {"method_total": 0}
 
     def settings(self) -> dict[str, Any]:
         """Settings of the method beyond the AdaptConfig (recorded with the results)."""
         return {}
 
-    def _adabn(self, model: SegmentationNet, scene: Scene, pretrain: PretrainReplay | None) -> None:
-        if self.config.adabn:
+    def _adabn(
+        self,
+        model: nn.Module,
+        scene: Scene,
+        pretrain: PretrainReplay | None,
+        before_labels: bool = False,
+    ) -> None:
+        """AdaBN on the scene's camera images: at the end of a step with ``config.adabn``,
+        before the network labels the scene (``before_labels``) only where
+        ``config.adabn_placement`` puts it there too."""
+        wanted = self.config.adabn_before_labels if before_labels else self.config.adabn
+        if wanted:
             apply_adabn(
                 model,
                 [f.color for f in scene.train_frames],
@@ -118,54 +134,69 @@ class ContinualMethod:
 
 
 class Ours(ContinualMethod):
-    """NeRF pseudo-labels in ``config.mode`` with replay from the NeRF memory bank."""
+    """NeRF pseudo-labels in ``config.mode`` with replay from the run's NeRF memory bank
+    (``state.bank``): the earlier scenes' NeRFs as stored, i.e. read back from their
+    checkpoints. The scene's NeRF joins the bank only when the collapse guard accepted its
+    labels: after a ``skip`` or a ``fallback_predictions`` nothing is banked (the record's
+    ``nerf_banked`` is false and ``not_banked`` says why), so later steps replay nothing
+    of the scene. A joint training the guard stopped banks the NeRF as restored to its
+    last accepted state."""
 
     name = "ours"
 
-    def __init__(self, context: MethodContext):
-        super().__init__(context)
-        self.bank = MemoryBank(context.out / "memory")
-
-    def step(self, model: SegmentationNet, scene: Scene) -> dict[str, Any]:
+    def step(
+        self,
+        state: ContinualState,
+        model: SegmentationNet,
+        scene: Scene,
+        on_progress: ProgressCallback | None = None,
+    ) -> dict[str, Any]:
         cfg = self.config
+        bank = state.bank
+        if bank is None:
+            raise ValueError("ours: the continual state has no NeRF memory bank")
         t0 = time.perf_counter()
-        previous = [n for n in self.bank.scenes if n != scene.name]
-        replay = (
-            ReplayBuffer.from_memory_bank(
-                self.bank,
+        previous = [n for n in bank.scenes if n != scene.name]
+        replay = None
+        if previous:
+            notify(on_progress, f"rendering replay from {len(previous)} earlier scene(s)", 0.0)
+            replay = ReplayBuffer.from_memory_bank(
+                bank,
                 cfg.replay.buffer_size,
                 cfg.replay.views,
                 previous,
                 cfg.replay.max_render_samples,
             )
-            if previous
-            else None
-        )
         t_replay = time.perf_counter() - t0
-        step = adapt_one_step(
+        result = adapt_one_step(
             model,
             scene,
             cfg,
             replay,
-            self.context.pretrain,
-            prior_entropy=self.context.prior_entropy,
+            state.pretrain,
+            prior_entropy=state.prior_entropy,
             evaluate_before=False,
+            on_progress=on_progress,
         )
-        entry = self.bank.add(scene.name, step.nerf) if step.nerf is not None else None
-        record = step.to_dict()
+        action = result.decisions[0].action if result.decisions else "continue"
+        banked = result.nerf is not None and result.trained and action == "continue"
+        if banked:
+            bank.add(scene.name, result.nerf)  # type: ignore[arg-type]
+        record = result.to_dict()
         record["method"] = self.name
+        record["nerf_banked"] = banked
+        if not banked:
+            record["not_banked"] = NOT_BANKED.get(action, action)
         record["seconds"] = {**record["seconds"], "replay_render": t_replay}
         record["replay"] = replay.per_scene() if replay is not None else {}
         record["replay_bytes"] = replay.nbytes() if replay is not None else 0
-        record["nerf_bytes"] = entry.bytes if entry is not None else 0
+        record["nerf_bytes"] = bank.bytes_per_scene().get(scene.name, 0) if banked else 0
         return record
 
-    def memory_bytes(self) -> dict[str, Any]:
-        return {
-            "nerf_per_scene": self.bank.bytes_per_scene(),
-            "nerf_total": self.bank.total_bytes(),
-            "method_total": self.bank.total_bytes(),
-        }
+    def memory_bytes(self, state: ContinualState) -> dict[str, Any]:
+        per_scene = state.bank.bytes_per_scene() if state.bank is not None else {}
+        total = sum(per_scene.values())
+        return {"nerf_per_scene": per_scene, "nerf_total": total, "method_total": total}
 
 
 class Mapping(ContinualMethod):
@@ -173,17 +204,23 @@ class Mapping(ContinualMethod):
 
     name = "mapping"
 
-    def __init__(self, context: MethodContext, voxel: VoxelMapConfig | None = None):
-        super().__init__(context)
+    def __init__(self, config: AdaptConfig, voxel: VoxelMapConfig | None = None):
+        super().__init__(config)
         self.voxel = voxel or VoxelMapConfig()
         self.memories: list[MappingMemory] = []
 
-    def step(self, model: SegmentationNet, scene: Scene) -> dict[str, Any]:
+    def step(
+        self,
+        state: ContinualState,
+        model: SegmentationNet,
+        scene: Scene,
+        on_progress: ProgressCallback | None = None,
+    ) -> dict[str, Any]:
         cfg = self.config
         frames = scene.train_frames
         t0 = time.perf_counter()
-        # As ours: predict with the scene's statistics.
-        self._adabn(model, scene, self.context.pretrain)
+        # As ours: predict with the scene's statistics where the placement says so.
+        self._adabn(model, scene, state.pretrain, before_labels=True)
         predictions = predict_frames(model, frames, device=cfg.seg.device)
         t1 = time.perf_counter()
         voxel_map = build_voxel_map(scene, predictions, self.voxel)
@@ -198,9 +235,10 @@ class Mapping(ContinualMethod):
             cfg,
             cfg.seg.epochs,
             replay,
-            self.context.pretrain,
+            state.pretrain,
+            on_progress,
         )
-        self._adabn(model, scene, self.context.pretrain)
+        self._adabn(model, scene, state.pretrain)
         t3 = time.perf_counter()
         memory = mapping_memory(scene, labels, voxel_map)
         self.memories = [*previous, memory]
@@ -217,7 +255,7 @@ class Mapping(ContinualMethod):
             "seconds": {"predict": t1 - t0, "fusion": t2 - t1, "finetune": t3 - t2},
         }
 
-    def memory_bytes(self) -> dict[str, Any]:
+    def memory_bytes(self, state: ContinualState) -> dict[str, Any]:
         raw = {m.scene: m.footprint().total_bytes for m in self.memories}
         png = {m.scene: m.footprint(".png").total_bytes for m in self.memories}
         return {
@@ -249,24 +287,43 @@ def cotta_config(config: AdaptConfig) -> CoTTAConfig:
 
 
 class CoTTAMethod(ContinualMethod):
-    """One CoTTA instance across the sequence; its teacher is the reported network."""
+    """One CoTTA instance across the sequence; its teacher is the reported network.
+
+    AdaBN applies to CoTTA as to the other methods: with ``config.adabn`` the teacher (the
+    network that is scored, pooled and saved) and the student re-estimate their statistics on
+    the scene's camera images after the online pass, and where ``config.adabn_placement``
+    also puts AdaBN before the network labels a scene, they do so before the pass too (the
+    teacher makes the pass's pseudo-labels, the student is trained with its statistics).
+    The frozen source network keeps the pre-trained statistics: it is CoTTA's anchor.
+    """
 
     name = "cotta"
-    reestimates_batchnorm = False  # reports its EMA teacher, never re-estimates statistics
 
-    def __init__(self, context: MethodContext, settings: CoTTAConfig | None = None):
-        super().__init__(context)
-        self.cotta_settings = settings or cotta_config(context.config)
+    def __init__(self, config: AdaptConfig, settings: CoTTAConfig | None = None):
+        super().__init__(config)
+        self.cotta_settings = settings or cotta_config(config)
         self.cotta: CoTTA | None = None
 
-    def step(self, model: SegmentationNet, scene: Scene) -> dict[str, Any]:
+    def step(
+        self,
+        state: ContinualState,
+        model: SegmentationNet,
+        scene: Scene,
+        on_progress: ProgressCallback | None = None,
+    ) -> dict[str, Any]:
         if self.cotta is None:
             self.cotta = CoTTA(model, self.cotta_settings)
         elif self.cotta.student is not model:
             raise ValueError("CoTTA: every step of a run must adapt the same network")
         t0 = time.perf_counter()
         frames = scene.train_frames
+        for net in (self.cotta.teacher, self.cotta.student):
+            self._adabn(net, scene, state.pretrain, before_labels=True)
+        t1 = time.perf_counter()
         labels = self.cotta.adapt(frames)
+        t2 = time.perf_counter()
+        for net in (self.cotta.teacher, self.cotta.student):
+            self._adabn(net, scene, state.pretrain)
         return {
             "scene": scene.name,
             "method": self.name,
@@ -276,13 +333,16 @@ class CoTTAMethod(ContinualMethod):
             ),
             "online_steps": self.cotta.steps,
             "last_loss": self.cotta.last_loss,
-            "seconds": {"online": time.perf_counter() - t0},
+            "seconds": {
+                "adabn": t1 - t0 + time.perf_counter() - t2,
+                "online": t2 - t1,
+            },
         }
 
     def reported(self, model: SegmentationNet) -> nn.Module:
         return self.cotta.teacher if self.cotta is not None else model
 
-    def memory_bytes(self) -> dict[str, Any]:
+    def memory_bytes(self, state: ContinualState) -> dict[str, Any]:
         if self.cotta is None:
             return {"method_total": 0}
         fp = self.cotta.footprint()
@@ -302,11 +362,17 @@ class SelfTraining(ContinualMethod):
 
     name = "finetune"
 
-    def step(self, model: SegmentationNet, scene: Scene) -> dict[str, Any]:
+    def step(
+        self,
+        state: ContinualState,
+        model: SegmentationNet,
+        scene: Scene,
+        on_progress: ProgressCallback | None = None,
+    ) -> dict[str, Any]:
         cfg = self.config
         frames = scene.train_frames
         t0 = time.perf_counter()
-        self._adabn(model, scene, None)  # as ours: predict with the scene's statistics
+        self._adabn(model, scene, None, before_labels=True)  # as ours
         predictions = predict_frames(model, frames, device=cfg.seg.device)
         losses = finetune_on_labels(
             model,
@@ -314,6 +380,7 @@ class SelfTraining(ContinualMethod):
             [predictions[f.name] for f in frames],
             cfg,
             cfg.seg.epochs,
+            on_progress=on_progress,
         )
         self._adabn(model, scene, None)
         miou = label_miou(predictions, scene)
@@ -358,39 +425,6 @@ def check_method(name: str, allowed: Sequence[str] = METHODS, field: str = "meth
     return name
 
 
-def make_method(name: str, context: MethodContext) -> ContinualMethod:
-    """The method called ``name`` (one of :data:`METHODS`)."""
-    return _CLASSES[check_method(name)](context)
-
-
-def one_step(
-    model: SegmentationNet,
-    scene: Scene,
-    config: AdaptConfig,
-    method: str,
-    out: str | Path,
-    pretrain: PretrainReplay | None = None,
-    prior_entropy: float | None = None,
-) -> tuple[dict[str, Any], nn.Module]:
-    """Adapt ``model`` (in place) to one scene with ``method``: one of :data:`METHODS`, or
-    ``gi_nl``/``ni_nl``/``joint`` for ours in that mode. Returns the step's record with the
-    val/train mIoU ``before`` and ``after`` (empty without ground truth), and the reported
-    network (the teacher for CoTTA, ``model`` otherwise)."""
-    check_method(method, (*METHODS, *MODES))
-    if method in MODES:
-        config = copy.deepcopy(config)
-        config.mode = method
-        name = "ours"
-    else:
-        name = method
-    runner = make_method(name, MethodContext(config, Path(out), pretrain, prior_entropy))
-    before = evaluate(model, scene, config.seg.device)
-    record = runner.step(model, scene)
-    reported = runner.reported(model)
-    record["method"] = method
-    record["mode"] = config.mode if name == "ours" else None
-    record["before"] = before
-    record["after"] = evaluate(reported, scene, config.seg.device)
-    record["memory_bytes"] = runner.memory_bytes()
-    record["method_settings"] = runner.settings()
-    return record, reported
+def make_method(name: str, config: AdaptConfig) -> ContinualMethod:
+    """The method called ``name`` (one of :data:`METHODS`) for a run with ``config``."""
+    return _CLASSES[check_method(name)](config)

@@ -1,5 +1,5 @@
 """Pseudo-labels of a new scene: predict with the current network, fuse in a Semantic-NeRF,
-render labels (and images) back at the training views (DESIGN.md "The method" steps 1-3)."""
+render labels (and images) back at the training views (docs/method.md "Predict", "Fuse in 3D", "Render pseudo-labels")."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 from torch import nn
 
 from csa_core.adapt.config import NerfBudget
@@ -19,8 +18,9 @@ from csa_core.data.scene import NYU40_FOLDER, Frame, Scene
 from csa_core.eval.miou import ConfusionMatrix
 from csa_core.nerf.config import NerfConfig
 from csa_core.nerf.config import preset as nerf_preset
-from csa_core.nerf.fit import fit_semantic_nerf, image_rays
+from csa_core.nerf.fit import fit_semantic_nerf
 from csa_core.nerf.model import SemanticNerf
+from csa_core.nerf.render import render_frames
 from csa_core.progress import ProgressCallback, notify, sub_progress
 from csa_core.seg.predict import predict_labels
 
@@ -28,7 +28,8 @@ PREDICTION_FOLDER = "prediction"
 
 
 def nerf_config(budget: NerfBudget) -> NerfConfig:
-    """The NeRF config of a budget: its preset with the step count, ray batch, table size and seed."""
+    """The NeRF config of a budget: its preset with the step count, seed and the budget's
+    overrides (ray batch, hash grid, semantic head, final learning rate)."""
     cfg = nerf_preset(budget.preset)
     cfg.optim.steps = budget.prefit_steps
     if budget.rays_per_step is not None:
@@ -41,6 +42,12 @@ def nerf_config(budget: NerfBudget) -> NerfConfig:
     if budget.finest_resolution is not None:
         enc.finest_resolution = budget.finest_resolution
         cfg.sampler.occupancy_resolution = min(cfg.sampler.occupancy_resolution, 32)
+    if budget.semantic_grid_levels is not None:
+        cfg.field.semantic_grid_levels = budget.semantic_grid_levels
+    if budget.semantic_hidden_layers is not None:
+        cfg.field.semantic_hidden_layers = budget.semantic_hidden_layers
+    if budget.final_lr_fraction is not None:
+        cfg.optim.final_lr_fraction = budget.final_lr_fraction
     cfg.seed = budget.seed
     return cfg
 
@@ -108,26 +115,18 @@ def label_miou(
 def render_at_frames(
     nerf: SemanticNerf, frames: Sequence[Frame], intrinsics: Intrinsics
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """NeRF images and labels at the frames' poses.
+    """NeRF images and labels at the frames' poses, several views per forward pass.
 
-    Where a frame has sensor depth, samples are placed around it (the fit's depth-guided
-    sampler, 16 samples per ray instead of up to 96 marching samples): the training views of
-    a scene always have it, and on a CPU rendering dominates joint training otherwise.
+    The frames' sensor depth goes along: where the NeRF's config renders views with depth
+    depth-guided (``SamplerConfig.render_depth_guided``, the fast preset), samples are placed
+    in the band around it instead of marching the whole ray (rays without depth still march);
+    the reference preset renders with its own sampler.
     """
-    h, w = intrinsics.height, intrinsics.width
-    images: dict[str, np.ndarray] = {}
-    labels: dict[str, np.ndarray] = {}
-    for f in frames:
-        origins, dirs = image_rays(intrinsics, f.pose, nerf.device)
-        if f.depth is not None and bool((f.depth > 0).any()):
-            depth = torch.as_tensor(f.depth.reshape(-1), dtype=torch.float32, device=nerf.device)
-            out = nerf.render_rays(origins, dirs, sampler="depth", depth=depth)
-        else:
-            out = nerf.render_rays(origins, dirs)
-        rgb = (out["rgb"].clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).reshape(h, w, 3)
-        images[f.name] = rgb.cpu().numpy()
-        cls = out["semantics"].argmax(dim=-1) + 1
-        labels[f.name] = cls.to(torch.uint8).reshape(h, w).cpu().numpy()
+    views = render_frames(
+        nerf, [(f.name, f.pose) for f in frames], intrinsics, depths=[f.depth for f in frames]
+    )
+    images = {v.name: v.color for v in views}
+    labels = {v.name: v.labels for v in views}
     return images, labels
 
 

@@ -1,5 +1,5 @@
 """Replay: a fixed-size buffer rendered from the memory bank, a slice of the pre-training data,
-and the batch composition that mixes them with the current scene (DESIGN.md "Remember").
+and the batch composition that mixes them with the current scene (docs/method.md "Remember").
 
 Split rule: ``size`` pairs over ``n`` previous scenes gives every scene ``size // n`` and the
 first ``size % n`` scenes (the oldest) one more, e.g. 100 over 3 -> 34, 33, 33. Views are
@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch.utils.data import Sampler
 
-from csa_core.adapt.memory_bank import MemoryBank
+from csa_core.adapt.memory_bank import NerfMemory
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.nerf.render import render_image, view_poses
 
@@ -67,7 +67,7 @@ class ReplayBuffer:
     @classmethod
     def from_memory_bank(
         cls,
-        bank: MemoryBank,
+        bank: NerfMemory,
         size: int,
         views: str = "train",
         scenes: Sequence[str] | None = None,
@@ -138,7 +138,7 @@ class PretrainReplay:
 class MixedBatchSampler(Sampler[list[int]]):
     """Batches of ``primary_per_batch`` indices from ``range(primary)`` (current scene and
     replay buffer) plus ``secondary_per_batch`` from ``range(primary, primary + secondary)``
-    (pre-training replay), DESIGN.md: 2 + 2.
+    (pre-training replay), docs/method.md "Remember": 2 + 2.
 
     One epoch is one shuffled pass over the primary items; the secondary items are drawn
     from their own reshuffled stream. Without secondary items a batch is all primary, of

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--preset",
         default=DEFAULT_PRESET,
-        help=f"paper (GPU-sized), cpu or tiny (tests) (default {DEFAULT_PRESET})",
+        help="paper (the paper's configuration; GPU-sized, runs slowly on a CPU), cpu (ours) "
+        f"or tiny (tests) (default {DEFAULT_PRESET})",
     )
     p.add_argument(
         "--mode", default=None, help="our method's mode: gi_nl, ni_nl or joint (default joint)"
@@ -109,7 +111,8 @@ def run_adapt(args: argparse.Namespace) -> int:
 
     from csa_core.adapt.config import MODES, PRESETS, preset
     from csa_core.adapt.continual import format_table, run_continual
-    from csa_core.adapt.methods import METHODS, check_method, one_step, pretrain_context
+    from csa_core.adapt.methods import METHODS, check_method, pretrain_context
+    from csa_core.adapt.step import one_step
     from csa_core.atomic_io import write_text_atomic
     from csa_core.data.scene_io import read_scene
     from csa_core.device import resolve_device
@@ -117,6 +120,7 @@ def run_adapt(args: argparse.Namespace) -> int:
     from csa_core.experiments.inputs import seeded
     from csa_core.experiments.report import jsonable
     from csa_core.seg.checkpoint import load_checkpoint, save_checkpoint
+    from csa_core.seg.config import paper_network_note
 
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -132,6 +136,9 @@ def run_adapt(args: argparse.Namespace) -> int:
     _check_out(args.out, args.overwrite)
     model, card = load_checkpoint(args.model, device=resolve_device(args.device))
     size = args.size or (tuple(card.input_size) if card.input_size else None)
+    note = paper_network_note(args.preset, card.arch, size)
+    if note:
+        print(note, file=sys.stderr)
     scenes = [read_scene(p, size=size) for p in args.scenes]
     pretrain_scenes = [read_scene(p, size=size) for p in args.pretrain_scenes]
     config = seeded(preset(args.preset), args.seed)

@@ -28,6 +28,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--overwrite", action="store_true")
     s.set_defaults(func=_synth)
 
+    g = cmds.add_parser(
+        "degrade",
+        help="make a Kinect-like capture of a clean scene: noisy depth with holes, noisy colour, "
+        "labels with systematic and per-frame errors",
+    )
+    g.add_argument("src", type=Path, help="clean scene folder (exact depth and labels)")
+    g.add_argument("dst", type=Path, help="scene folder to write")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--source", default="label-nyu40", help="label folder the noisy labels start from")
+    g.add_argument("--target", default="label-noisy", help="label folder that receives the noisy labels")
+    g.add_argument("--no-labels", action="store_true", help="degrade colour and depth only")
+    g.add_argument("--overwrite", action="store_true")
+    g.set_defaults(func=_degrade)
+
     f = cmds.add_parser("families", help="list the synthetic room families")
     f.set_defaults(func=_families)
 
@@ -71,6 +85,23 @@ def _synth(args: argparse.Namespace) -> int:
     paths = synthesize(args.out, scenes=args.scenes, frames=args.frames, size=args.size, family=args.family, seed=args.seed, overwrite=args.overwrite)
     for p in paths:
         print(p)
+    return 0
+
+
+def _degrade(args: argparse.Namespace) -> int:
+    from csa_core.data.synth import degrade_scene_folder
+
+    source = None if args.no_labels else args.source
+    scene = degrade_scene_folder(
+        args.src, args.dst, args.seed, source=source, target=args.target, overwrite=args.overwrite
+    )
+    measured = np.mean([float((f.depth > 0).mean()) for f in scene.frames])
+    line = f"{args.dst}: {len(scene)} frames, {100 * measured:.1f}% of pixels with depth"
+    if source is not None:
+        hits = sum(int((f.labels[args.target] == f.labels[source]).sum()) for f in scene.frames)
+        total = sum(f.labels[source].size for f in scene.frames)
+        line += f", {args.target} agrees with {source} on {100 * hits / total:.1f}% of pixels"
+    print(line)
     return 0
 
 

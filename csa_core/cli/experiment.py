@@ -11,6 +11,7 @@ plots, and the runs' own files under ``runs/<name>/``.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from csa_core.cli.args import positive_int, size_arg
@@ -75,6 +76,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                 default=None,
                 help="our method's mode: gi_nl, ni_nl, joint (default joint)",
             )
+            e.add_argument(
+                "--adabn",
+                default=None,
+                choices=("on", "off", "both"),
+                help="every method with AdaBN (BatchNorm statistics re-estimated on each "
+                "scene's camera images), without, or both side by side (default: the preset's, on)",
+            )
         e.set_defaults(func=run_experiment_command)
 
 
@@ -83,6 +91,7 @@ def run_experiment_command(args: argparse.Namespace) -> int:
 
     from csa_core.experiments import allowed_methods, run_experiment
     from csa_core.experiments.inputs import load_inputs, parse_seeds
+    from csa_core.seg.config import paper_network_note
 
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -105,7 +114,11 @@ def run_experiment_command(args: argparse.Namespace) -> int:
         mode=getattr(args, "mode", None),
         methods=methods,
         allowed_methods=allowed_methods(name),
+        adabn=getattr(args, "adabn", None),
     )
+    note = paper_network_note(args.preset, inputs.card.arch, inputs.size)
+    if note:
+        print(note, file=sys.stderr)
     report, written = run_experiment(name, inputs)
     print(report.markdown)
     print()

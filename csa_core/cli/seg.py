@@ -5,8 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from csa_core.cli.args import positive_int, size_arg
+
+if TYPE_CHECKING:
+    from csa_core.seg.config import PretrainConfig
 
 
 def _positive_float(text: str) -> float:
@@ -35,10 +39,11 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from csa_core.seg.config import ARCH_NAMES, DEFAULT_ARCH, SCHEDULES, PretrainConfig
+    from csa_core.seg.config import ARCH_NAMES, PRETRAIN_PRESETS, SCHEDULES, pretrain_preset
 
-    pre = PretrainConfig()
+    pre = pretrain_preset("cpu")
     defaults = pre.train
+    paper = pretrain_preset("paper")
     p = sub.add_parser("seg", help="pre-train, run and score segmentation networks")
     cmds = p.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
 
@@ -52,25 +57,37 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     t.add_argument("--out", type=Path, required=True, help="checkpoint to write (.safetensors)")
     t.add_argument(
-        "--arch", choices=ARCH_NAMES, default=DEFAULT_ARCH, help=f"network (default {DEFAULT_ARCH})"
+        "--preset",
+        choices=tuple(PRETRAIN_PRESETS),
+        default="cpu",
+        help=f"network, size and training settings: cpu (ours: {pre.arch} at "
+        f"{pre.size[0]}x{pre.size[1]}) or paper ({paper.arch} at {paper.size[0]}x"
+        f"{paper.size[1]}, the official pre-training); the options below override it "
+        "(default cpu)",
     )
     t.add_argument(
-        "--epochs", type=positive_int, default=defaults.epochs, help=f"(default {defaults.epochs})"
+        "--arch", choices=ARCH_NAMES, default=None, help=f"network (cpu preset: {pre.arch})"
+    )
+    t.add_argument(
+        "--epochs", type=positive_int, default=None, help=f"(cpu preset: {defaults.epochs})"
     )
     t.add_argument(
         "--lr",
         type=_positive_float,
-        default=defaults.lr,
-        help=f"initial Adam learning rate (default {defaults.lr})",
+        default=None,
+        help=f"initial Adam learning rate (cpu preset: {defaults.lr})",
     )
     t.add_argument(
-        "--schedule", choices=SCHEDULES, default=defaults.schedule, help="learning-rate decay"
+        "--schedule",
+        choices=SCHEDULES,
+        default=None,
+        help=f"learning-rate decay (cpu preset: {defaults.schedule})",
     )
     t.add_argument(
         "--size",
         type=size_arg,
-        default=pre.size,
-        help=f"working size WxH (default {pre.size[0]}x{pre.size[1]})",
+        default=None,
+        help=f"working size WxH (cpu preset: {pre.size[0]}x{pre.size[1]})",
     )
     t.add_argument(
         "--labels",
@@ -171,34 +188,47 @@ def _setup_threads(args: argparse.Namespace) -> None:
         torch.set_num_threads(args.threads)
 
 
-def _pretrain(args: argparse.Namespace) -> int:
+def pretrain_config(args: argparse.Namespace) -> PretrainConfig:
+    """The pre-training config of ``csa seg pretrain``: the ``--preset``'s, with the options
+    given on the command line in place of its values."""
     from dataclasses import replace
 
-    from csa_core.data.scene import Scene
-    from csa_core.data.scene_io import read_scene
-    from csa_core.errors import CSAInputError
-    from csa_core.seg.config import PretrainConfig
-    from csa_core.seg.pretraining import pretrain
+    from csa_core.seg.config import pretrain_preset
 
-    _setup_threads(args)
-    if args.out.exists() and not args.overwrite:
-        raise CSAInputError(args.out, "output already exists (pass --overwrite to replace it)")
-    config = PretrainConfig(arch=args.arch, size=args.size, label_folder=args.labels)
+    config = pretrain_preset(args.preset)
+    config.arch = args.arch or config.arch
+    config.size = args.size or config.size
+    config.label_folder = args.labels
+    t = config.train
     config.train = replace(
-        config.train,
-        epochs=args.epochs,
-        batch_size=args.batch_size or config.train.batch_size,
-        lr=args.lr,
-        schedule=args.schedule,
+        t,
+        epochs=args.epochs or t.epochs,
+        batch_size=args.batch_size or t.batch_size,
+        lr=args.lr or t.lr,
+        schedule=args.schedule or t.schedule,
         seed=args.seed,
         device=args.device,
     )
     if args.no_augment:
         config.augment = None
+    return config
+
+
+def _pretrain(args: argparse.Namespace) -> int:
+
+    from csa_core.data.scene import Scene
+    from csa_core.data.scene_io import read_scene
+    from csa_core.errors import CSAInputError
+    from csa_core.seg.pretraining import pretrain
+
+    _setup_threads(args)
+    if args.out.exists() and not args.overwrite:
+        raise CSAInputError(args.out, "output already exists (pass --overwrite to replace it)")
+    config = pretrain_config(args)
 
     def read(paths: list[Path]) -> list[Scene]:
         return [
-            read_scene(p, size=args.size, labels=[args.labels], every=args.every) for p in paths
+            read_scene(p, size=config.size, labels=[args.labels], every=args.every) for p in paths
         ]
 
     val = read(args.val_scenes) if args.val_scenes else None

@@ -7,12 +7,34 @@ Poses are 4x4 camera-to-world matrices in metres with OpenCV camera axes
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from csa_core.errors import CSAInputError
 
 MIN_SIZE_PX, MAX_SIZE_PX = 8, 8192
+
+MAX_TRANSLATION_M = 1.0e4
+"""Largest distance (metres) of a camera from the world origin that a pose may state.
+
+Indoor scans span metres and building-scale captures hundreds of metres; 10 km leaves room for
+any real capture in a local frame, while far larger numbers only come from broken trackers or
+hostile input, and their squares overflow the float32 ray arithmetic of the NeRF."""
+
+RIGID_TOLERANCE = 1.0e-3
+"""Largest entry of |RᵀR - I| (and of the last row's distance from 0 0 0 1) in a rigid pose.
+
+Poses are stored as text with a few decimals and come from trackers working in float32; the
+7-Scenes kitchen poses deviate by up to 4e-4. A scaled or sheared matrix deviates by far more
+(scale 1.01 already gives 0.02)."""
+
+FOCAL_RATIO_RANGE = (1.0e-2, 1.0e2)
+"""Focal length relative to the image side it belongs to (fx / width, fy / height): from a
+field of view of 178 degrees to one of 0.6 degrees."""
+
+PRINCIPAL_POINT_MARGIN = 1.0
+"""How far the principal point may lie outside the image, in image sizes (0: inside only)."""
 
 
 @dataclass(frozen=True)
@@ -58,6 +80,59 @@ class Intrinsics:
     @classmethod
     def from_dict(cls, d: dict) -> Intrinsics:
         return cls(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
+
+
+def check_pose(pose: np.ndarray, where: str | Path) -> np.ndarray:
+    """``pose`` as a float64 4x4 camera-to-world rigid transform, or a :class:`CSAInputError`
+    naming ``where`` and what is wrong: not 4x4, not finite, last row not 0 0 0 1, rotation part
+    not orthonormal or a reflection (determinant -1), translation beyond
+    :data:`MAX_TRANSLATION_M`. The one check of poses for the scene reader and the server."""
+    m = np.asarray(pose, dtype=np.float64)
+    if m.shape != (4, 4):
+        raise CSAInputError(where, f"pose must be a 4x4 matrix, got shape {'x'.join(map(str, m.shape))}")
+    if not np.all(np.isfinite(m)):
+        raise CSAInputError(where, "pose is not finite")
+    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > RIGID_TOLERANCE:
+        raise CSAInputError(where, "last row of a camera-to-world pose must be 0 0 0 1")
+    R, t = m[:3, :3], m[:3, 3]
+    with np.errstate(over="ignore", invalid="ignore"):
+        deviation = float(np.abs(R.T @ R - np.eye(3)).max())
+    if not deviation <= RIGID_TOLERANCE:
+        raise CSAInputError(
+            where, f"rotation part is not orthonormal (max |RᵀR - I| = {deviation:.3g} > {RIGID_TOLERANCE:g}): a pose must be a rigid transform, without scale or shear"
+        )
+    if np.linalg.det(R) < 0:
+        raise CSAInputError(where, "rotation part has determinant -1: a reflection, not a rotation")
+    largest = float(np.abs(t).max())
+    distance = largest * float(np.linalg.norm(t / largest)) if largest > 0 else 0.0  # no overflow
+    if distance > MAX_TRANSLATION_M:
+        raise CSAInputError(where, f"translation is {distance:.3g} m from the origin, more than {MAX_TRANSLATION_M:g} m")
+    return m
+
+
+def check_intrinsics(intr: Intrinsics, where: str | Path) -> Intrinsics:
+    """``intr`` when it describes a usable pinhole camera, else a :class:`CSAInputError` naming
+    ``where``: image size within 1..:data:`MAX_SIZE_PX`, finite values, focal lengths within
+    :data:`FOCAL_RATIO_RANGE` of the image size, principal point within
+    :data:`PRINCIPAL_POINT_MARGIN` image sizes of the image."""
+    w, h = intr.width, intr.height
+    if not (1 <= w <= MAX_SIZE_PX and 1 <= h <= MAX_SIZE_PX):
+        raise CSAInputError(where, f"image size {w}x{h} is outside 1..{MAX_SIZE_PX} pixels per side")
+    values = {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy}
+    for name, v in values.items():
+        if not np.isfinite(v):
+            raise CSAInputError(where, f"{name} is not finite")
+    lo, hi = FOCAL_RATIO_RANGE
+    for name, f, side in (("fx", intr.fx, w), ("fy", intr.fy, h)):
+        if f <= 0:
+            raise CSAInputError(where, f"focal lengths must be positive, {name} is {f:g}")
+        if not lo * side <= f <= hi * side:
+            raise CSAInputError(where, f"{name} = {f:g} px is not within {lo:g}..{hi:g} times the image size ({side} px)")
+    m = PRINCIPAL_POINT_MARGIN
+    for name, c, side in (("cx", intr.cx, w), ("cy", intr.cy, h)):
+        if not -m * side <= c <= (1 + m) * side:
+            raise CSAInputError(where, f"principal point {name} = {c:g} px lies more than {m:g} image sizes outside the {side}-pixel image")
+    return intr
 
 
 def parse_size(text: str, field: str = "--size") -> tuple[int, int]:

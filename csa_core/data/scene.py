@@ -1,4 +1,4 @@
-"""Typed scenes and frames: the in-memory form of the scene folder (DESIGN.md, data contract)."""
+"""Typed scenes and frames: the in-memory form of the scene folder (docs/data-contract.md, "The scene folder")."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 
 from csa_core.data.camera import Intrinsics
 
-# DESIGN.md "Protocols": the first 80% of the kept frames are training views, the rest validation.
+# docs/method.md "Protocols and metrics": the first 80% of the kept frames are training views, the rest validation.
 TRAIN_FRACTION = 0.8
 
 NYU40_FOLDER = "label-nyu40"

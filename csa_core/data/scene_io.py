@@ -1,4 +1,4 @@
-"""Reader and writer of the scene folder (ScanNet export layout, see DESIGN.md "Data contract")."""
+"""Reader and writer of the scene folder (ScanNet export layout, see docs/data-contract.md "The scene folder")."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 
 from csa_core.atomic_io import atomic_dir
 from csa_core.data import image_files as imf
-from csa_core.data.camera import Intrinsics
+from csa_core.data.camera import Intrinsics, check_intrinsics, check_pose
 from csa_core.data.resample import resample_nearest, resize_color
 from csa_core.data.scannet_labels import load_raw_to_nyu40
 from csa_core.data.scene import NYU40_FOLDER, RAW_SCANNET_FOLDER, Frame, Scene, SkippedFrame
@@ -43,10 +43,8 @@ def label_folders_of(root: Path) -> list[str]:
 
 
 def _read_intrinsics(root: Path, which: str, width: int, height: int) -> Intrinsics:
-    K = imf.read_matrix(root / "intrinsic" / f"intrinsic_{which}.txt", ((3, 3), (4, 4)))
-    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise CSAInputError(root / "intrinsic" / f"intrinsic_{which}.txt", "focal lengths must be finite and positive")
-    return Intrinsics.from_matrix(K, width, height)
+    path = root / "intrinsic" / f"intrinsic_{which}.txt"
+    return check_intrinsics(Intrinsics.from_matrix(imf.read_matrix(path, ((3, 3), (4, 4))), width, height), path)
 
 
 def _check_size(path: Path, img: np.ndarray, want: tuple[int, int], what: str) -> None:
@@ -55,10 +53,9 @@ def _check_size(path: Path, img: np.ndarray, want: tuple[int, int], what: str) -
 
 
 def _read_pose(path: Path) -> np.ndarray:
+    """A rigid camera-to-world pose; a non-finite one (lost tracking) is returned for skipping."""
     pose = imf.read_matrix(path, ((4, 4),))
-    if np.all(np.isfinite(pose)) and not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-4):
-        raise CSAInputError(path, "last row of a camera-to-world pose must be 0 0 0 1")
-    return pose
+    return check_pose(pose, path) if np.all(np.isfinite(pose)) else pose
 
 
 def _resolve_labels(root: Path, labels: LabelSpec, label_map: Path | None) -> list[str]:

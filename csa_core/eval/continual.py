@@ -1,4 +1,4 @@
-"""Continual-learning scores over a sequence of scenes (DESIGN.md, "Protocols and metrics").
+"""Continual-learning scores over a sequence of scenes (docs/method.md, "Protocols and metrics").
 
 ``R[i, j]`` is the score (e.g. mIoU) on scene ``j`` after adapting to scenes ``0..i``, and
 ``b[j]`` the pre-trained model's score on scene ``j``. The results are in the units of ``R``.

@@ -1,4 +1,4 @@
-"""Semantic segmentation scores under the CSA protocol (DESIGN.md, "Protocols and metrics").
+"""Semantic segmentation scores under the CSA protocol (docs/method.md, "Protocols and metrics").
 
 One confusion matrix is accumulated over every pixel of a scene. Ground truth 0 (unknown) is
 ignored. A prediction of 0 is kept: it is a miss of the ground-truth class and a false

@@ -26,6 +26,9 @@ from csa_core.errors import CSAInputError
 from csa_core.seg.checkpoint import ModelCard
 from csa_core.seg.models import SegmentationNet
 
+# ``--adabn`` of the experiments: every method with AdaBN, without, or both runs side by side.
+ADABN_CHOICES: tuple[str, ...] = ("on", "off", "both")
+
 
 def seeded(config: AdaptConfig, seed: int) -> AdaptConfig:
     """A copy of ``config`` with every seed (NeRF, fine-tuning, replay) set to ``seed``."""
@@ -103,6 +106,7 @@ class ExperimentInputs:
     device: str | None = None
     mode: str | None = None  # ours' mode in the continual protocol (None: the preset's)
     methods: list[str] | None = None  # None: the experiment's default list
+    adabn: str | None = None  # "on", "off" or "both" (None: the preset's AdaptConfig.adabn)
 
     def network(self) -> SegmentationNet:
         """A fresh copy of the pre-trained network (runs must not share weights)."""
@@ -117,13 +121,22 @@ class ExperimentInputs:
         folder.mkdir(parents=True)
         return folder
 
-    def config(self, seed: int, mode: str | None = None) -> AdaptConfig:
+    def config(self, seed: int, mode: str | None = None, adabn: bool | None = None) -> AdaptConfig:
         """The preset's config with every seed set to ``seed``, ``mode`` (or the inputs'
-        mode) and the device."""
+        mode), ``adabn`` (``None``: the preset's) and the device."""
         config = seeded(preset(self.preset), seed)
         config.mode = mode or self.mode or config.mode
+        if adabn is not None:
+            config.adabn = adabn
         config.seg.device = self.device
         return config
+
+    def adabn_variants(self) -> list[bool]:
+        """The AdaBN settings to run each method with: ``[True, False]`` for ``both``,
+        one of them for ``on`` / ``off``, the preset's own otherwise."""
+        if self.adabn is None:
+            return [preset(self.preset).adabn]
+        return {"on": [True], "off": [False], "both": [True, False]}[self.adabn]
 
     def describe(self) -> dict[str, Any]:
         """The inputs as recorded in config.json."""
@@ -140,6 +153,7 @@ class ExperimentInputs:
             "preset": self.preset,
             "mode": self.mode,
             "methods": self.methods,
+            "adabn": self.adabn,
             "seeds": self.seeds,
             "size": list(self.size) if self.size else None,
             "device": self.device,
@@ -159,6 +173,7 @@ def load_inputs(
     methods: Sequence[str] | None = None,
     allowed_methods: Sequence[str] = (),
     need_ground_truth: bool = True,
+    adabn: str | None = None,
 ) -> ExperimentInputs:
     """Check and load everything an experiment needs. ``size`` defaults to the size the
     network was trained at (then the scenes' own); ``methods`` must be in ``allowed_methods``."""
@@ -172,6 +187,8 @@ def load_inputs(
         )
     if mode is not None and mode not in MODES:
         raise CSAInputError("--mode", f"unknown mode {mode!r} (choose from {', '.join(MODES)})")
+    if adabn is not None and adabn not in ADABN_CHOICES:
+        raise CSAInputError("--adabn", f"expected one of {', '.join(ADABN_CHOICES)}, got {adabn!r}")
     for name in methods or ():
         check_method(name, allowed_methods, "--methods")
     if methods is not None and not methods:
@@ -198,4 +215,5 @@ def load_inputs(
         device=device,
         mode=mode,
         methods=list(methods) if methods is not None else None,
+        adabn=adabn,
     )

@@ -1,10 +1,13 @@
 """Experiment ``multi-step``: the continual protocol for every method (paper Tab. 3).
 
-Each (method, seed) is one :func:`run_continual` over the whole sequence from the pre-trained
-network, in its own folder under ``runs/multi-step/<method>/seed<k>`` (with its
-``results.json``). Per step i the table shows "Adapt", R[i, i] (the scene just adapted to),
-and "Previous", the mean of R[i, j] over the scenes j < i seen before (forgetting shows
-here), then ACC, A, FWT and BWT; the plot draws both rows per method over the steps.
+Each (method, AdaBN setting, seed) is one :func:`run_continual` over the whole sequence from
+the pre-trained network, in its own folder under
+``runs/multi-step/<method>/adabn-<on|off>/seed<k>`` (with its ``results.json``). ``--adabn
+both`` runs every method with and without AdaBN (``AdaptConfig.adabn``, which every method
+honours, CoTTA included), so a method's gain can be told apart from AdaBN's. Per step i the
+table shows "Adapt", R[i, i] (the scene just adapted to), and "Previous", the mean of R[i, j]
+over the scenes j < i seen before (forgetting shows here), then ACC, A, FWT and BWT; the plot
+draws both rows per method over the steps.
 """
 
 from __future__ import annotations
@@ -41,15 +44,21 @@ def adapt_row(R: np.ndarray) -> np.ndarray:
     return np.diagonal(R).copy()
 
 
+def adabn_name(adabn: bool) -> str:
+    return "on" if adabn else "off"
+
+
 def run(inputs: ExperimentInputs) -> ExperimentReport:
-    """One continual run per method and seed; see the module docstring."""
+    """One continual run per method, AdaBN setting and seed; see the module docstring."""
     methods = list(inputs.methods or DEFAULT_METHODS)
-    results: dict[str, list] = {m: [] for m in methods}
+    variants = inputs.adabn_variants()
+    entries = [(m, a) for m in methods for a in variants]
+    results: dict[tuple[str, bool], list] = {e: [] for e in entries}
     runs = []
-    for method in methods:
+    for method, adabn in entries:
         for seed in inputs.seeds:
-            config = inputs.config(seed)
-            work = inputs.run_folder(NAME, method, f"seed{seed}")
+            config = inputs.config(seed, adabn=adabn)
+            work = inputs.run_folder(NAME, method, f"adabn-{adabn_name(adabn)}", f"seed{seed}")
             result = run_continual(
                 inputs.network(),
                 inputs.scenes,
@@ -59,10 +68,11 @@ def run(inputs: ExperimentInputs) -> ExperimentReport:
                 save_model=False,
                 method=method,
             )
-            results[method].append(result)
+            results[(method, adabn)].append(result)
             runs.append(
                 {
                     "method": method,
+                    "adabn": adabn,
                     "seed": seed,
                     "results": str(work / "results.json"),
                     "R": result.R.tolist(),
@@ -73,16 +83,27 @@ def run(inputs: ExperimentInputs) -> ExperimentReport:
                     "config": result.config,
                 }
             )
-    return _report(inputs, methods, results, runs)
+    return _report(inputs, entries, results, runs, len(variants) > 1)
+
+
+def title(method: str, adabn: bool, both: bool) -> str:
+    """A method's row title; with both AdaBN settings in the table, which one the row is."""
+    if not both:
+        return TITLES[method]
+    return f"{TITLES[method]}, {'with' if adabn else 'without'} AdaBN"
 
 
 def _report(
-    inputs: ExperimentInputs, methods: list[str], results: dict[str, list], runs: list[dict]
+    inputs: ExperimentInputs,
+    entries: list[tuple[str, bool]],
+    results: dict[tuple[str, bool], list],
+    runs: list[dict],
+    both: bool,
 ) -> ExperimentReport:
     n = len(inputs.seeds)
     names = [s.name for s in inputs.scenes]
     T = len(names)
-    first = results[methods[0]][0]
+    first = results[entries[0]][0]
     header = [
         "method",
         "",
@@ -91,40 +112,43 @@ def _report(
     ]
     rows = [["pre-trained", "", *(pct(v) for v in first.b), *([""] * len(METRICS))]]
     csv_rows, metric_rows, plots_series = [], [], []
-    for k, method in enumerate(methods):
-        adapt = np.stack([adapt_row(r.R) for r in results[method]])  # seeds x T
-        prev = np.stack([previous_row(r.R) for r in results[method]])
+    for k, (method, adabn) in enumerate(entries):
+        done = results[(method, adabn)]
+        adapt = np.stack([adapt_row(r.R) for r in done])  # seeds x T
+        prev = np.stack([previous_row(r.R) for r in done])
         a_stats = [mean_std(adapt[:, i]) for i in range(T)]
         p_stats = [mean_std(prev[:, i]) for i in range(T)]
-        m_stats = {k: mean_std(r.metrics[k] for r in results[method]) for k in METRICS}
-        title = TITLES[method]
+        m_stats = {key: mean_std(r.metrics[key] for r in done) for key in METRICS}
+        name = title(method, adabn, both)
         rows.append(
             [
-                title,
+                name,
                 "Adapt",
                 *(pct(m, s, n) for m, s in a_stats),
-                *(pct(*m_stats[k], n, signed=k in ("fwt", "bwt")) for k in METRICS),
+                *(pct(*m_stats[key], n, signed=key in ("fwt", "bwt")) for key in METRICS),
             ]
         )
-        rows.append(
-            [title, "Previous", *(pct(m, s, n) for m, s in p_stats), *([""] * len(METRICS))]
-        )
+        rows.append([name, "Previous", *(pct(m, s, n) for m, s in p_stats), *([""] * len(METRICS))])
+        on = adabn_name(adabn)
         for i in range(T):
-            csv_rows.append([method, i, names[i], *a_stats[i], *p_stats[i], float(first.b[i]), n])
-        metric_rows.append([method, *(v for k in METRICS for v in m_stats[k]), n])
+            csv_rows.append(
+                [method, on, i, names[i], *a_stats[i], *p_stats[i], float(first.b[i]), n]
+            )
+        metric_rows.append([method, on, *(v for key in METRICS for v in m_stats[key]), n])
         x = list(range(1, T + 1))
         plots_series.append(
             Series(
-                f"{title}: adapt",
+                f"{name}: adapt",
                 x,
                 [m for m, _ in a_stats],
                 [s for _, s in a_stats],
+                style="-" if adabn or not both else "-.",
                 color=f"C{k}",
             )
         )
         plots_series.append(
             Series(
-                f"{title}: previous",
+                f"{name}: previous",
                 x[1:],
                 [m for m, _ in p_stats][1:],
                 [s for _, s in p_stats][1:],
@@ -145,7 +169,14 @@ def _report(
         f"### Multi-step (continual) adaptation: validation mIoU % per step "
         f"({n} seed{'s' * (n > 1)}, preset {inputs.preset})\n\n"
         "Adapt: R[i, i], the scene just adapted to; Previous: mean of R[i, j < i]. "
-        "ACC, A, FWT, BWT in mIoU points.\n\n" + markdown_table(header, rows)
+        "ACC, A, FWT, BWT in mIoU points. "
+        + (
+            "Every method runs with and without AdaBN (BatchNorm statistics re-estimated on "
+            "each scene's camera images).\n\n"
+            if both
+            else f"AdaBN {adabn_name(entries[0][1])} for every method.\n\n"
+        )
+        + markdown_table(header, rows)
     )
     plot = Plot(
         file=f"{NAME}.png",
@@ -161,6 +192,7 @@ def _report(
         markdown=md,
         csv_header=[
             "method",
+            "adabn",
             "step",
             "scene",
             "adapt_mean",
@@ -175,7 +207,12 @@ def _report(
         plots=[plot],
         extra_csv={
             f"{NAME}-metrics": (
-                ["method", *(f"{k}_{s}" for k in METRICS for s in ("mean", "std")), "seeds"],
+                [
+                    "method",
+                    "adabn",
+                    *(f"{k}_{s}" for k in METRICS for s in ("mean", "std")),
+                    "seeds",
+                ],
                 metric_rows,
             )
         },

@@ -11,7 +11,8 @@ from __future__ import annotations
 import time
 
 from csa_core.adapt.finetune import evaluate
-from csa_core.adapt.methods import one_step, pretrain_context
+from csa_core.adapt.methods import pretrain_context
+from csa_core.adapt.step import one_step
 from csa_core.experiments.inputs import ExperimentInputs
 from csa_core.experiments.report import ExperimentReport, markdown_table, mean_std, pct
 

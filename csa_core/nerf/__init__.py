@@ -1,5 +1,5 @@
 """Hash-grid Semantic-NeRF: fuse per-frame labels in 3D, render labels, images and depth, and
-store each scene compactly for the memory bank (DESIGN.md "The method", steps 2, 3 and 5).
+store each scene compactly for the memory bank (docs/method.md "Fuse in 3D", "Render pseudo-labels", "Remember").
 
 Typical use::
 
@@ -21,9 +21,11 @@ _EXPORTS = {
     "fit": ("FitStats", "fit_semantic_nerf"),
     "label_noise": ("LabelNoiseConfig", "corrupt_labels"),
     "model": ("SemanticNerf",),
+    "rays": ("RayBank", "camera_directions", "image_rays"),
     "render": (
-        "RenderedView", "interpolate_pose", "novel_view_poses", "render_image", "render_pseudo_labels",
-        "render_views", "write_rendered_views",
+        "RenderedView", "interpolate_pose", "novel_view_poses", "render_frames", "render_image",
+        "render_pseudo_labels", "render_views", "write_rendered_views",
     ),
+    "trainer": ("NerfTrainer",),
 }  # fmt: skip
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -1,6 +1,6 @@
 """Configuration of the Semantic-NeRF: one dataclass per component, presets as config values.
 
-``reference`` follows the paper and its official code (DESIGN.md "Reference numbers");
+``reference`` follows the paper and its official code (docs/method.md "Reference numbers");
 ``fast`` is our CPU-friendly variant (smaller table, depth-guided training samples,
 occupancy-grid rendering, fp16 checkpoints). Every fitted checkpoint stores the full config.
 """
@@ -20,11 +20,17 @@ from csa_core.data.nyu40 import NUM_CLASSES
 class HashEncodingConfig:
     """Multi-resolution hash grid (Instant-NGP)."""
 
-    num_levels: int = 16  # DESIGN.md: 16 levels
-    features_per_level: int = 2  # DESIGN.md: 2 features per level
-    log2_table_size: int = 19  # DESIGN.md: table 2^19 (reference)
-    base_resolution: int = 16  # DESIGN.md: base resolution 16
+    num_levels: int = 16  # docs/method.md "Reference numbers": 16 levels
+    features_per_level: int = 2  # docs/method.md "Reference numbers": 2 features per level
+    log2_table_size: int = 19  # docs/method.md "Reference numbers": table 2^19
+    base_resolution: int = 16  # docs/method.md "Reference numbers": base resolution 16
     finest_resolution: int = 2048  # Instant-NGP / torch-ngp default for unit-cube scenes
+    # Ours: torch.compile the corner computation (integer hashing and trilinear weights, many
+    # small elementwise steps that inductor fuses into one loop). Measured on 2 CPU cores
+    # (benchmarks/RESULTS.md, "Label fusion speed"): field forward + backward 1.4x, inference
+    # 1.9x, but 30 s (cached) to 100 s (first time) to compile in every new process, so off by
+    # default; falls back to eager if compiling fails.
+    compile: bool = False
 
 
 @dataclass
@@ -32,11 +38,17 @@ class FieldConfig:
     """Density, colour and semantic heads on top of the hash encoding."""
 
     encoding: HashEncodingConfig = _field(default_factory=HashEncodingConfig)
-    hidden_dim: int = 64  # DESIGN.md: all MLPs 64 wide
-    density_hidden_layers: int = 1  # DESIGN.md: density MLP, 1 hidden layer
-    geo_features: int = 15  # DESIGN.md: 15 geometry features beside the density
-    color_hidden_layers: int = 2  # DESIGN.md: colour MLP 2-3 layers of 64
-    semantic_hidden_layers: int = 2  # DESIGN.md: semantic MLP 2 layers of 64
+    hidden_dim: int = 64  # docs/method.md "Reference numbers": all MLPs 64 wide
+    density_hidden_layers: int = (
+        1  # docs/method.md "Reference numbers": density MLP, 1 hidden layer
+    )
+    geo_features: int = (
+        15  # docs/method.md "Reference numbers": 15 geometry features beside the density
+    )
+    color_hidden_layers: int = 2  # docs/method.md "Reference numbers": colour MLP 2-3 layers of 64
+    semantic_hidden_layers: int = (
+        2  # docs/method.md "Reference numbers": semantic MLP 2 layers of 64
+    )
     # Ours: the semantic head also reads its own feature table, laid out like the first
     # ``semantic_grid_levels`` levels of the hash grid and interpolated with the same corners.
     # Only the semantic loss trains it, so geometry still gets no semantic gradient; the detached
@@ -53,13 +65,20 @@ class SamplerConfig:
     ``reference``: stratified uniform samples, then importance samples from their weights
     (paper: 256 + 256). ``depth``: depth-guided (training only; rays without a measurement
     fall back to stratified samples). ``occupancy``: ray marching that skips empty cells of an
-    occupancy grid (rendering, and training rays without depth).
+    occupancy grid (rendering, and training rays without depth). ``render_depth_guided``:
+    views that have measured depth (the training views' pseudo-labels) render with
+    ``render_band_samples`` samples in the depth band only; their rays without a measurement,
+    and views without depth, use the ``render`` sampler.
     """
 
     train: Literal["reference", "depth", "occupancy"] = "reference"
     render: Literal["reference", "occupancy"] = "reference"
-    uniform_samples: int = 256  # DESIGN.md: 256 uniform samples per ray
-    importance_samples: int = 256  # DESIGN.md: 256 importance samples per ray
+    render_depth_guided: bool = False  # paper: every view renders with the ``render`` sampler
+    render_band_samples: int = 8  # depth-guided rendering: samples in the band of each ray
+    uniform_samples: int = 256  # docs/method.md "Reference numbers": 256 uniform samples per ray
+    importance_samples: int = (
+        256  # docs/method.md "Reference numbers": 256 importance samples per ray
+    )
     near: float = 0.05  # metres in front of the camera where rays start
     depth_band: float = (
         0.10  # depth-guided: half-width (metres) of the band around the measured depth
@@ -78,7 +97,7 @@ class SamplerConfig:
 
 @dataclass
 class LossConfig:
-    """Loss weights, DESIGN.md "The method" step 2."""
+    """Loss weights, docs/method.md "Fuse in 3D"."""
 
     color: float = 1.0  # L2 on colour
     depth: float = 0.1  # w_d: L1 on depth where the sensor measured it
@@ -95,13 +114,21 @@ class LossConfig:
 class OptimConfig:
     """Adam and the ray batch."""
 
-    steps: int = 5000  # ~5 min at 0.06 s/step on an RTX 3090 (DESIGN.md reported cost)
-    rays_per_step: int = 4096  # DESIGN.md: 4096 rays per step
-    lr: float = 1e-2  # DESIGN.md: Adam lr 1e-2
-    betas: tuple[float, float] = (0.9, 0.99)  # DESIGN.md
-    eps: float = 1e-15  # DESIGN.md
+    steps: int = 5000  # ~5 min at 0.06 s/step on an RTX 3090 (reported cost, docs/method.md "Reference numbers")
+    rays_per_step: int = 4096  # docs/method.md "Reference numbers": 4096 rays per step
+    lr: float = 1e-2  # docs/method.md "Reference numbers": Adam lr 1e-2
+    betas: tuple[float, float] = (0.9, 0.99)  # docs/method.md "Reference numbers"
+    eps: float = 1e-15  # docs/method.md "Reference numbers"
     final_lr_fraction: float = 0.1  # exponential decay to this fraction of lr at the last step
     weight_decay_mlp: float = 1e-6  # small L2 on MLP weights (Instant-NGP)
+    # Ours (0 = paper): after the joint fit, steps on the semantic head alone (geometry frozen,
+    # samples placed the way labels are rendered), ``semantic_rays_per_step`` rays each at a
+    # constant ``lr * semantic_lr_fraction``. A semantic step costs a fraction of a full one,
+    # so the labels of every pixel are seen several times (benchmarks/RESULTS.md, "Label fusion
+    # speed and quality").
+    semantic_steps: int = 0
+    semantic_rays_per_step: int = 4096
+    semantic_lr_fraction: float = 1.0
 
 
 @dataclass
@@ -155,7 +182,11 @@ def _fast() -> NerfConfig:
             encoding=HashEncodingConfig(log2_table_size=15, finest_resolution=1024),
         ),
         sampler=SamplerConfig(
-            train="depth", render="occupancy", uniform_samples=64, importance_samples=64
+            train="depth",
+            render="occupancy",
+            render_depth_guided=True,
+            uniform_samples=64,
+            importance_samples=64,
         ),
         optim=OptimConfig(steps=1500, rays_per_step=1024),
         loss=LossConfig(free_space=1.0),

@@ -3,7 +3,7 @@
 Positions are in the encoder's unit cube (``normalization.SceneBox.to_unit``); outside it the
 density is zero. The semantic head reads the geometry features *detached*, and the renderer
 detaches the weights for the semantic channel, so the semantic loss never shapes geometry
-(paper's stop-gradient; DESIGN.md "The method" step 2).
+(paper's stop-gradient; docs/method.md "Fuse in 3D").
 """
 
 from __future__ import annotations
@@ -107,28 +107,68 @@ class SemanticField(nn.Module):
             enc, sem = self.encoding(x, self.semantic_table, self.semantic_levels)
         else:
             enc, sem = self.encoding(x), None
+        sigma, geo = self._density_head(x, enc)
+        return sigma, geo, sem
+
+    def _density_head(self, x: Tensor, enc: Tensor) -> tuple[Tensor, Tensor]:
         h = self.density_mlp(enc)
         inside = ((x >= 0) & (x <= 1)).all(dim=-1)
         sigma = trunc_exp(h[:, 0] - 1.0) * inside  # bias -1: start nearly empty
-        return sigma, h[:, 1:], sem
+        return sigma, h[:, 1:]
+
+    def _semantic_head(self, geo: Tensor, sem: Tensor | None) -> Tensor:
+        sem_in = geo.detach() if sem is None else torch.cat([geo.detach(), sem], dim=-1)
+        return self.semantic_mlp(sem_in)
 
     def density(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """Density ``(N,)`` (per metre of world space) and geometry features ``(N, geo)`` at ``x``."""
         sigma, geo, _ = self._heads_input(x, semantic_features=False)
         return sigma, geo
 
-    def forward(self, x: Tensor, dirs: Tensor, semantics: bool = True) -> dict[str, Tensor]:
+    def semantics(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Density ``(N,)`` without gradient and semantic logits ``(N, num_classes)`` at ``x``:
+        the semantic head alone, for training it with geometry frozen. The cell corners are
+        found once for both tables; only the semantic table and MLP see gradients."""
+        if self.semantic_table is None:
+            with torch.no_grad():
+                sigma, geo = self.density(x)
+            return sigma, self._semantic_head(geo, None)
+        rows, weights = self.encoding.corners(x)
+        with torch.no_grad():
+            sigma, geo = self._density_head(x, self.encoding.interpolate(rows, weights))
+        levels = self.semantic_levels
+        sem = self.encoding.interpolate(rows[:levels], weights[:levels], self.semantic_table)
+        return sigma, self._semantic_head(geo, sem)
+
+    def semantic_logits(self, x: Tensor, geo: Tensor) -> Tensor:
+        """Semantic logits ``(N, num_classes)`` at ``x`` given the geometry features ``geo``
+        there (from :meth:`density`): finds the corners of the semantic levels only."""
+        if self.semantic_table is None:
+            return self._semantic_head(geo, None)
+        rows, weights = self.encoding.corners(x, self.semantic_levels)
+        sem = self.encoding.interpolate(rows, weights, self.semantic_table)
+        return self._semantic_head(geo, sem)
+
+    def color(self, geo: Tensor, dirs: Tensor) -> Tensor:
+        """Colour ``(N, 3)`` in [0, 1] from geometry features and unit view directions."""
+        sh = spherical_harmonics(dirs, self.cfg.sh_degree)
+        return torch.sigmoid(self.color_mlp(torch.cat([sh, geo], dim=-1)))
+
+    def forward(
+        self, x: Tensor, dirs: Tensor | None, semantics: bool = True, color: bool = True
+    ) -> dict[str, Tensor]:
         """``x`` (N, 3) unit-cube points, ``dirs`` (N, 3) unit view directions.
 
-        Returns ``sigma`` (N,), ``rgb`` (N, 3) in [0, 1] and, with ``semantics``,
+        Returns ``sigma`` (N,), with ``color`` ``rgb`` (N, 3) in [0, 1] and, with ``semantics``,
         ``semantic_logits`` (N, num_classes) computed from detached geometry features.
+        ``dirs`` may be ``None`` without ``color`` (labels do not depend on the view).
         """
         sigma, geo, sem = self._heads_input(x, semantic_features=semantics)
-        rgb = torch.sigmoid(
-            self.color_mlp(torch.cat([spherical_harmonics(dirs, self.cfg.sh_degree), geo], dim=-1))
-        )
-        out = {"sigma": sigma, "rgb": rgb}
+        out = {"sigma": sigma}
+        if color:
+            if dirs is None:
+                raise ValueError("SemanticField: colour needs view directions")
+            out["rgb"] = self.color(geo, dirs)
         if semantics:
-            sem_in = geo.detach() if sem is None else torch.cat([geo.detach(), sem], dim=-1)
-            out["semantic_logits"] = self.semantic_mlp(sem_in)
+            out["semantic_logits"] = self._semantic_head(geo, sem)
         return out

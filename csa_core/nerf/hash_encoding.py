@@ -15,6 +15,7 @@ batches are encoded in cache-sized blocks (``INFERENCE_BLOCK``).
 
 from __future__ import annotations
 
+import logging
 import math
 
 import torch
@@ -43,6 +44,8 @@ _INIT_SCALE = 1e-4  # table initialised uniformly in [-1e-4, 1e-4] (Instant-NGP)
 # streams hundreds of MB through memory; in blocks of 2^15 they stay in cache. Measured on a
 # 2-core EPYC, 16 levels, 245,760 positions: 1879 ms in one block, 416 ms in blocks of 2^15.
 INFERENCE_BLOCK = 2**15
+
+log = logging.getLogger(__name__)
 
 
 def level_resolutions(cfg: HashEncodingConfig) -> list[int]:
@@ -111,9 +114,7 @@ class HashEncoding(nn.Module):
         self.register_buffer(
             "resolutions", torch.tensor(resolutions, dtype=torch.float32), persistent=False
         )
-        self.register_buffer(
-            "_res_int", torch.tensor(resolutions, dtype=_INDEX), persistent=False
-        )
+        self.register_buffer("_res_int", torch.tensor(resolutions, dtype=_INDEX), persistent=False)
         self.register_buffer("_offsets", torch.tensor(offsets, dtype=_INDEX), persistent=False)
         strides = [[1, r + 1, (r + 1) ** 2] for r in resolutions[: self._num_dense]]
         self.register_buffer(
@@ -133,30 +134,42 @@ class HashEncoding(nn.Module):
     def out_dim(self) -> int:
         return self.cfg.num_levels * self.cfg.features_per_level
 
-    def corners(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """Table rows and trilinear weights of the 8 cell corners, each ``(L, 8, N)``.
+    def corners(self, x: Tensor, levels: int | None = None) -> tuple[Tensor, Tensor]:
+        """Table rows and trilinear weights of the 8 cell corners, each ``(L, 8, N)``, of every
+        level or of the first ``levels`` (compiled with ``HashEncodingConfig.compile``)."""
+        if self.cfg.compile and _compiled_corners() is not None:
+            try:
+                return _compiled_corners()(self, x, levels)
+            except Exception as e:  # noqa: BLE001 - any compiler failure: stay correct, eagerly
+                log.warning("torch.compile of the hash encoding failed, running eagerly: %s", e)
+                _COMPILED["fn"] = None
+        return self.corners_eager(x, levels)
+
+    def corners_eager(self, x: Tensor, levels: int | None = None) -> tuple[Tensor, Tensor]:
+        """:meth:`corners` in plain PyTorch (the reference for the compiled version).
 
         Level-major, sample-minor layout: every broadcast runs over a contiguous inner
         dimension of N samples (several times faster on CPU than a trailing corner dimension)
         and the dense and hashed level groups join by plain concatenation.
         """
-        levels = self.cfg.num_levels
-        pos = x.detach().clamp(0.0, 1.0).T.unsqueeze(0) * self.resolutions.view(-1, 1, 1)  # L 3 N
+        levels = self.cfg.num_levels if levels is None else min(levels, self.cfg.num_levels)
+        res = self.resolutions[:levels].view(-1, 1, 1)
+        pos = x.detach().clamp(0.0, 1.0).T.unsqueeze(0) * res  # L 3 N
         # Clamped so that a position on the far face interpolates inside the last cell.
-        cell = pos.floor().to(_INDEX).clamp_max(self._res_int.view(-1, 1, 1) - 1)
+        cell = pos.floor().to(_INDEX).clamp_max(self._res_int[:levels].view(-1, 1, 1) - 1)
         frac = pos - cell
         w = torch.stack([1 - frac, frac], dim=1)  # L x 2 (corner) x 3 (axis) x N
         weights = (w[:, :, None, None, 2] * w[:, None, :, None, 1]) * w[
             :, None, None, :, 0
         ]  # L z y x N
         c = torch.stack([cell, cell + 1], dim=1)  # L x 2 x 3 x N
-        nd = self._num_dense
+        nd = min(self._num_dense, levels)
         n = x.shape[0]
         rows = torch.empty(
             levels, 2, 2, 2, n, dtype=_INDEX, device=x.device
         )  # written in place, no concatenation
         if nd > 0:  # dense levels: x + y * (R + 1) + z * (R + 1)^2 + level offset
-            cd = c[:nd] * self._dense_strides.view(nd, 1, 3, 1)
+            cd = c[:nd] * self._dense_strides[:nd].view(nd, 1, 3, 1)
             zy = cd[:, :, None, None, 2] + cd[:, None, :, None, 1]
             torch.add(
                 zy, cd[:, None, None, :, 0] + self._offsets[:nd].view(nd, 1, 1, 1, 1), out=rows[:nd]
@@ -170,7 +183,7 @@ class HashEncoding(nn.Module):
                 out=hashed,
             )
             hashed &= self._hash_mask
-            hashed += self._offsets[nd:].view(-1, 1, 1, 1, 1)
+            hashed += self._offsets[nd:levels].view(-1, 1, 1, 1, 1)
         return rows.reshape(levels, 8, -1), weights.reshape(levels, 8, -1)
 
     def level_rows(self, levels: int) -> int:
@@ -198,11 +211,29 @@ class HashEncoding(nn.Module):
                 empty if extra is None else (empty, x.new_zeros(0, extra_levels * extra.shape[1]))
             )
         rows, weights = self.corners(x)
-        weights = weights.to(self.table.dtype)
-        feats = (
-            _HashGather.apply(self.table, rows, weights).transpose(0, 1).reshape(n, self.out_dim)
-        )
+        feats = self.interpolate(rows, weights)
         if extra is None:
             return feats
-        more = _HashGather.apply(extra, rows[:extra_levels], weights[:extra_levels])
-        return feats, more.transpose(0, 1).reshape(n, -1)
+        return feats, self.interpolate(rows[:extra_levels], weights[:extra_levels], extra)
+
+    def interpolate(self, rows: Tensor, weights: Tensor, table: Tensor | None = None) -> Tensor:
+        """Features ``(N, L * F)`` of ``table`` (default: this encoding's) at corners from
+        :meth:`corners` (``L`` levels, the table laid out like this one's first ``L`` levels)."""
+        table = self.table if table is None else table
+        out = _HashGather.apply(table, rows, weights.to(table.dtype))
+        return out.transpose(0, 1).reshape(rows.shape[-1], -1)
+
+
+_COMPILED: dict[str, object] = {}
+
+
+def _compiled_corners():
+    """``HashEncoding.corners_eager`` compiled once per process (dynamic sizes), or ``None``
+    where torch.compile is unavailable or has failed."""
+    if "fn" not in _COMPILED:
+        try:
+            _COMPILED["fn"] = torch.compile(HashEncoding.corners_eager, dynamic=True)
+        except Exception as e:  # noqa: BLE001 - no compiler on this platform
+            log.warning("torch.compile unavailable, the hash encoding runs eagerly: %s", e)
+            _COMPILED["fn"] = None
+    return _COMPILED["fn"]

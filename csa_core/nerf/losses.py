@@ -1,4 +1,4 @@
-"""Losses of the Semantic-NeRF fit (DESIGN.md "The method" step 2; paper Eq. 4)."""
+"""Losses of the Semantic-NeRF fit (docs/method.md "Fuse in 3D"; paper Eq. 4)."""
 
 from __future__ import annotations
 

@@ -17,6 +17,8 @@ from csa_core.data.nyu40 import CLASS_NAMES
 from csa_core.nerf.appearance import FrameAppearance
 from csa_core.nerf.config import NerfConfig
 from csa_core.nerf.field import SemanticField
+from csa_core.nerf.hash_encoding import INFERENCE_BLOCK
+from csa_core.nerf.losses import free_space_loss, total_loss
 from csa_core.nerf.normalization import SceneBox
 from csa_core.nerf.rendering import (
     RaySamples,
@@ -25,10 +27,12 @@ from csa_core.nerf.rendering import (
     render_weights,
 )
 from csa_core.nerf.samplers import (
+    DepthGuidedSampler,
     OccupancyGrid,
-    sample_depth_guided,
-    sample_reference,
-    sample_uniform,
+    OccupancySampler,
+    RaySampler,
+    ReferenceSampler,
+    UniformSampler,
 )
 
 
@@ -96,65 +100,77 @@ class SemanticNerf(nn.Module):
         """Density at world points (N, 3)."""
         return self.field.density(self.box.to_unit(points))[0]
 
+    # -- samplers ---------------------------------------------------------------------------
+
+    def make_sampler(self, kind: str, training: bool = False) -> RaySampler:
+        """The sampler object of a config name: ``reference``, ``uniform``, ``depth`` (the
+        training layout: band and spread samples) or ``occupancy`` (marching this model's grid;
+        pruned by density unless ``training``)."""
+        s = self.config.sampler
+        if kind == "reference":
+            return ReferenceSampler(s.uniform_samples, s.importance_samples)
+        if kind == "uniform":
+            return UniformSampler(s.uniform_samples + s.importance_samples)
+        if kind == "depth":
+            return DepthGuidedSampler(
+                s.band_samples, s.spread_samples, s.depth_band, s.depth_band_fraction
+            )
+        if kind == "occupancy":
+            return OccupancySampler(
+                self.grid,
+                self.box,
+                s.max_render_samples,
+                update_every=s.occupancy_update_every,
+                prune=not training,
+            )
+        raise ValueError(
+            f"unknown sampler {kind!r} (expected reference, depth, occupancy or uniform)"
+        )
+
+    def train_sampler(self, has_depth: bool = True) -> RaySampler:
+        """The config's training sampler; depth-guided falls back to ``reference`` without depth."""
+        kind = self.config.sampler.train
+        if kind == "depth" and not has_depth:
+            kind = "reference"
+        return self.make_sampler(kind, training=True)
+
+    def render_sampler(self, with_depth: bool = False) -> RaySampler:
+        """The config's render sampler; for views ``with_depth`` and ``render_depth_guided``,
+        samples in the band around the measured depth, the render sampler for rays without."""
+        s = self.config.sampler
+        fallback = self.make_sampler(s.render)
+        if with_depth and s.render_depth_guided:
+            return DepthGuidedSampler(
+                s.render_band_samples, 0, s.depth_band, s.depth_band_fraction, fallback=fallback
+            )
+        return fallback
+
     def sample(
         self,
         origins: Tensor,
         dirs: Tensor,
-        sampler: str,
+        sampler: RaySampler | str,
         depth: Tensor | None = None,
         stratified: bool = False,
         generator: torch.Generator | None = None,
     ) -> RaySamples:
-        """Samples along rays with the named sampler (``reference``, ``depth``, ``occupancy``, ``uniform``)."""
-        s = self.config.sampler
-        t_near, t_far = self.box.ray_interval(origins, dirs, s.near)
-        if sampler == "depth":
-            if depth is None:
-                depth = torch.zeros_like(t_near)
-            return sample_depth_guided(
-                t_near,
-                t_far,
-                depth,
-                s.band_samples,
-                s.spread_samples,
-                s.depth_band,
-                s.depth_band_fraction,
-                stratified,
-                generator,
-            )
-        if sampler == "reference":
-            with torch.no_grad():
-                return sample_reference(
-                    origins,
-                    dirs,
-                    t_near,
-                    t_far,
-                    self.density_fn,
-                    s.uniform_samples,
-                    s.importance_samples,
-                    stratified,
-                    generator,
-                )
-        if sampler == "uniform":
-            return sample_uniform(
-                t_near, t_far, s.uniform_samples + s.importance_samples, stratified, generator
-            )
-        if sampler == "occupancy":
-            fn = None if self.training else self.density_fn  # early ray termination when rendering
-            return self.grid.sampling(
-                self.box,
-                origins,
-                dirs,
-                t_near,
-                t_far,
-                stratified,
-                generator,
-                max_samples=s.max_render_samples,
-                density_fn=fn,
-            )
-        raise ValueError(
-            f"unknown sampler {sampler!r} (expected reference, depth, occupancy or uniform)"
+        """Samples along rays inside the scene box with ``sampler`` (an object, or a config
+        name for :meth:`make_sampler`)."""
+        if isinstance(sampler, str):
+            sampler = self.make_sampler(sampler, training=self.training)
+        t_near, t_far = self.box.ray_interval(origins, dirs, self.config.sampler.near)
+        return sampler.sampling(
+            origins,
+            dirs,
+            t_near,
+            t_far,
+            depth=depth,
+            density_fn=self.density_fn,
+            stratified=stratified,
+            generator=generator,
         )
+
+    # -- rendering --------------------------------------------------------------------------
 
     def render_samples(
         self,
@@ -163,58 +179,162 @@ class SemanticNerf(nn.Module):
         samples: RaySamples,
         semantics: bool = True,
         appearance: Tensor | int | None = None,
+        color: bool = True,
     ) -> dict[str, Tensor]:
-        """Evaluate the field at ``samples`` and composite: ``rgb`` (R, 3), ``depth`` (R,),
-        ``opacity`` (R,), and with ``semantics`` the class distribution ``semantics`` (R, C).
-        ``appearance``: training frame index (one, or (R,) per ray) whose colour correction
-        applies to ``rgb``; ``None`` (or a model without corrections): the average appearance."""
+        """Evaluate the field at ``samples`` and composite: ``rgb`` (R, 3) (with ``color``),
+        ``depth`` (R,), ``opacity`` (R,), ``weights`` (S,), and with ``semantics`` the class
+        distribution ``semantics`` (R, C). ``appearance``: training frame index (one, or (R,)
+        per ray) whose colour correction applies to ``rgb``; ``None`` (or a model without
+        corrections): the average appearance."""
         ri = samples.ray_indices
         t = samples.t_mids
         pts = origins[ri] + dirs[ri] * t[:, None]
-        view = torch.nn.functional.normalize(dirs, dim=-1)[ri]
-        out = self.field(self.box.to_unit(pts), view, semantics=semantics)
+        view = torch.nn.functional.normalize(dirs, dim=-1)[ri] if color else None
+        out = self.field(self.box.to_unit(pts), view, semantics=semantics, color=color)
         weights, _, _ = render_weights(out["sigma"], samples, dirs.norm(dim=-1))
-        rgb = accumulate_along_rays(weights, out["rgb"], samples)
-        if self.appearance is not None:
-            rgb = self.appearance(rgb, appearance)
-        result = {
-            "rgb": rgb,
-            "depth": accumulate_along_rays(weights, t[:, None], samples).squeeze(-1),
-            "opacity": accumulate_along_rays(weights, None, samples).squeeze(-1),
-            "weights": weights,
-        }
+        result = {}
+        if color:
+            rgb = accumulate_along_rays(weights, out["rgb"], samples)
+            result["rgb"] = rgb if self.appearance is None else self.appearance(rgb, appearance)
+        result["depth"] = accumulate_along_rays(weights, t[:, None], samples).squeeze(-1)
+        result["opacity"] = accumulate_along_rays(weights, None, samples).squeeze(-1)
+        result["weights"] = weights
         if semantics:
             result["semantics"] = normalized_class_probabilities(
                 weights, out["semantic_logits"], samples
             )
         return result
 
+    @torch.inference_mode()
+    def render_samples_pruned(
+        self,
+        origins: Tensor,
+        dirs: Tensor,
+        samples: RaySamples,
+        semantics: bool = True,
+        appearance: int | None = None,
+        color: bool = True,
+        min_weight: float = 1e-3,
+    ) -> dict[str, Tensor]:
+        """Inference version of :meth:`render_samples` (same outputs but ``weights``): the
+        density everywhere, then colour and semantics only at the samples whose weight is at
+        least ``min_weight`` times the largest of their ray (what is dropped are the faint
+        tails in front of and behind a surface)."""
+        ri = samples.ray_indices
+        t = samples.t_mids
+        x = self.box.to_unit(origins[ri] + dirs[ri] * t[:, None])
+        sigma, geo = self.field.density(x)
+        weights, _, _ = render_weights(sigma, samples, dirs.norm(dim=-1))
+        result = {
+            "depth": accumulate_along_rays(weights, t[:, None], samples).squeeze(-1),
+            "opacity": accumulate_along_rays(weights, None, samples).squeeze(-1),
+        }
+        if not (color or semantics):
+            return result
+        ray_max = weights.new_zeros(samples.num_rays).scatter_reduce(
+            0, ri, weights, reduce="amax", include_self=True
+        )
+        keep = torch.nonzero(weights >= min_weight * ray_max[ri]).squeeze(-1)
+        kept = RaySamples(ri[keep], samples.t_starts[keep], samples.t_ends[keep], samples.num_rays)
+        w, g = weights[keep], geo[keep]
+        if color:
+            view = torch.nn.functional.normalize(dirs, dim=-1)[kept.ray_indices]
+            rgb = accumulate_along_rays(w, _blocked(self.field.color, g, view), kept)
+            result["rgb"] = rgb if self.appearance is None else self.appearance(rgb, appearance)
+        if semantics:
+            logits = _blocked(self.field.semantic_logits, x[keep], g)
+            result["semantics"] = normalized_class_probabilities(w, logits, kept)
+        return result
+
+    def render_semantics(self, origins: Tensor, dirs: Tensor, samples: RaySamples) -> Tensor:
+        """Class distributions (R, C) with gradients for the semantic head only (the density,
+        hence the weights, computed without): one semantic training step's forward pass."""
+        ri = samples.ray_indices
+        pts = origins[ri] + dirs[ri] * samples.t_mids[:, None]
+        sigma, logits = self.field.semantics(self.box.to_unit(pts))
+        weights, _, _ = render_weights(sigma, samples, dirs.norm(dim=-1))
+        return normalized_class_probabilities(weights, logits, samples)
+
     def render_rays(
         self,
         origins: Tensor,
         dirs: Tensor,
-        sampler: str | None = None,
+        sampler: RaySampler | str | None = None,
         depth: Tensor | None = None,
         semantics: bool = True,
         chunk: int | None = None,
         appearance: int | None = None,
+        color: bool = True,
     ) -> dict[str, Tensor]:
-        """Render rays for inference (no gradients), in chunks; ``sampler`` defaults to the config's,
-        ``appearance`` is a training frame whose colour correction applies (``None``: average)."""
-        sampler = sampler or self.config.sampler.render
+        """Render rays for inference (no autograd), in chunks of rays. ``sampler`` defaults to
+        :meth:`render_sampler` (depth-guided where ``depth`` (R,) is given and the config
+        says so); ``appearance`` is a training frame whose colour correction applies
+        (``None``: average); without ``color`` only depth, opacity and semantics are made."""
+        if sampler is None:
+            sampler = self.render_sampler(with_depth=depth is not None)
+        elif isinstance(sampler, str):
+            sampler = self.make_sampler(sampler)
         chunk = chunk or self.config.render_chunk
         parts: list[dict[str, Tensor]] = []
-        with torch.no_grad():
+        with torch.inference_mode():
             for i in range(0, origins.shape[0], chunk):
                 o, d = origins[i : i + chunk], dirs[i : i + chunk]
                 dd = depth[i : i + chunk] if depth is not None else None
                 samples = self.sample(o, d, sampler, depth=dd)
                 parts.append(
-                    self.render_samples(o, d, samples, semantics=semantics, appearance=appearance)
+                    self.render_samples_pruned(
+                        o, d, samples, semantics=semantics, appearance=appearance, color=color
+                    )
                 )
         if not parts:
             return {}
-        return {k: torch.cat([p[k] for p in parts]) for k in parts[0] if k != "weights"}
+        return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+    # -- training ---------------------------------------------------------------------------
+
+    def parameter_groups(self) -> list[dict]:
+        """Optimiser groups: feature tables and per-frame colour corrections without weight
+        decay, MLP weights with the config's small L2 (Instant-NGP)."""
+        tables, mlp = [], []
+        for name, p in self.field.named_parameters():
+            is_table = name.startswith("encoding.") or name == "semantic_table"
+            (tables if is_table else mlp).append(p)
+        if self.appearance is not None:
+            tables += list(self.appearance.parameters())
+        return [
+            {"params": tables, "weight_decay": 0.0},
+            {"params": mlp, "weight_decay": self.config.optim.weight_decay_mlp},
+        ]
+
+    def semantic_parameter_groups(self) -> list[dict]:
+        """The semantic head's parameters (table and MLP), grouped like :meth:`parameter_groups`."""
+        named = dict(self.field.named_parameters())
+        table = [named["semantic_table"]] if "semantic_table" in named else []
+        mlp = [p for n, p in named.items() if n.startswith("semantic_mlp.")]
+        return [
+            {"params": table, "weight_decay": 0.0},
+            {"params": mlp, "weight_decay": self.config.optim.weight_decay_mlp},
+        ]
+
+    def losses(
+        self,
+        out: dict[str, Tensor],
+        target: dict[str, Tensor],
+        samples: RaySamples,
+        free_space_scale: float = 1.0,
+    ) -> dict[str, Tensor]:
+        """The fit's loss terms and their weighted sum ``loss`` (``losses.total_loss``), with
+        the free-space term on depth-banded samples scaled by ``free_space_scale`` (its warm-up)."""
+        s = self.config.sampler
+        if self.config.loss.free_space > 0 and free_space_scale > 0 and "depth" in target:
+            d = target["depth"][samples.ray_indices]
+            half = s.depth_band + s.depth_band_fraction * d
+            in_front = ((d > 0) & (samples.t_ends < d - half)).float()
+            out = dict(out)
+            out["free_space"] = free_space_scale * free_space_loss(
+                out["weights"], in_front, samples
+            )
+        return total_loss(out, target, self.config.loss)
 
     @torch.no_grad()
     def update_occupancy(
@@ -249,3 +369,11 @@ class SemanticNerf(nn.Module):
                 & (v < intr.height + mh)
             )
         return seen
+
+
+def _blocked(fn, *inputs: Tensor, block: int = INFERENCE_BLOCK) -> Tensor:
+    """``fn(*inputs)`` on blocks of ``block`` rows (inference: keeps the work cache-sized)."""
+    n = inputs[0].shape[0]
+    if n <= block:
+        return fn(*inputs)
+    return torch.cat([fn(*(t[i : i + block] for t in inputs)) for i in range(0, n, block)])

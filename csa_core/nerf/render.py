@@ -21,20 +21,21 @@ from csa_core.data.camera import Intrinsics
 from csa_core.data.label_images import save_preview
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.errors import CSAInputError
-from csa_core.nerf.fit import image_rays
 from csa_core.nerf.model import SemanticNerf
+from csa_core.nerf.rays import image_rays
 
 VIEWS = ("train", "val", "all", "novel")
 
 
 @dataclass
 class RenderedView:
-    """One rendered camera: RGB uint8 (H, W, 3), z-depth float32 metres (H, W), NYU40 ids uint8
-    (H, W) and the rendered probability of that class (H, W) float32 (``None`` without semantics)."""
+    """One rendered camera: RGB uint8 (H, W, 3) (``None`` when rendered without colour),
+    z-depth float32 metres (H, W), NYU40 ids uint8 (H, W) and the rendered probability of that
+    class (H, W) float32 (``None`` without semantics)."""
 
     name: str
     pose: np.ndarray
-    color: np.ndarray
+    color: np.ndarray | None
     depth: np.ndarray
     labels: np.ndarray | None = None
     confidence: np.ndarray | None = None
@@ -114,6 +115,26 @@ def view_poses(
     return [(f.name, np.asarray(f.pose)) for f in scene.split(views)]
 
 
+def _view_from_output(
+    out: dict[str, torch.Tensor], intr: Intrinsics, pose: np.ndarray, name: str
+) -> RenderedView:
+    h, w = intr.height, intr.width
+    if "rgb" in out:
+        rgb = (out["rgb"].clamp(0, 1) * 255.0 + 0.5).to(torch.uint8)
+        color = rgb.reshape(h, w, 3).cpu().numpy()
+    else:
+        color = None
+    depth = out["depth"].reshape(h, w).float().cpu().numpy()
+    view = RenderedView(
+        name=name, pose=np.asarray(pose, dtype=np.float64), color=color, depth=depth
+    )
+    if "semantics" in out:
+        conf, cls = out["semantics"].max(dim=-1)
+        view.labels = (cls + 1).to(torch.uint8).reshape(h, w).cpu().numpy()
+        view.confidence = conf.reshape(h, w).float().cpu().numpy()
+    return view
+
+
 def render_image(
     nerf: SemanticNerf,
     pose: np.ndarray,
@@ -122,26 +143,75 @@ def render_image(
     semantics: bool = True,
     sampler: str | None = None,
     appearance: int | None = None,
+    depth: np.ndarray | None = None,
+    color: bool = True,
 ) -> RenderedView:
     """Render one camera (default: the training camera) at a camera-to-world ``pose``.
     ``appearance``: index of the training frame whose colour correction to apply (models fitted
-    with ``appearance="affine"``); ``None`` renders the average appearance."""
+    with ``appearance="affine"``); ``None`` renders the average appearance. ``depth``: the
+    view's measured depth (H, W) metres, 0 = none; the config decides whether samples go
+    around it (``SamplerConfig.render_depth_guided``). Without ``color``, ``color`` is ``None``."""
+    return render_frames(
+        nerf,
+        [(name, pose)],
+        intrinsics,
+        depths=None if depth is None else [depth],
+        semantics=semantics,
+        sampler=sampler,
+        appearance=appearance,
+        color=color,
+    )[0]
+
+
+def render_frames(
+    nerf: SemanticNerf,
+    poses: Sequence[tuple[str, np.ndarray]],
+    intrinsics: Intrinsics | None = None,
+    depths: Sequence[np.ndarray | None] | None = None,
+    semantics: bool = True,
+    sampler: str | None = None,
+    appearance: int | None = None,
+    color: bool = True,
+    rays_per_pass: int = 2**16,
+) -> list[RenderedView]:
+    """Render the ``(name, pose)`` cameras, the rays of several views per forward pass (about
+    ``rays_per_pass``). ``depths``: each view's measured depth (or ``None``); views with depth
+    and views without are batched separately, as they use different samplers."""
     intr = intrinsics or nerf.info.intrinsics
-    origins, dirs = image_rays(intr, pose, nerf.device)
-    out = nerf.render_rays(
-        origins, dirs, sampler=sampler, semantics=semantics, appearance=appearance
-    )
-    h, w = intr.height, intr.width
-    color = (out["rgb"].clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).reshape(h, w, 3).cpu().numpy()
-    depth = out["depth"].reshape(h, w).float().cpu().numpy()
-    view = RenderedView(
-        name=name, pose=np.asarray(pose, dtype=np.float64), color=color, depth=depth
-    )
-    if semantics:
-        conf, cls = out["semantics"].max(dim=-1)
-        view.labels = (cls + 1).to(torch.uint8).reshape(h, w).cpu().numpy()
-        view.confidence = conf.reshape(h, w).float().cpu().numpy()
-    return view
+    hw = intr.width * intr.height
+    depths = list(depths) if depths is not None else [None] * len(poses)
+    if len(depths) != len(poses):
+        raise ValueError(f"render_frames: {len(poses)} poses but {len(depths)} depth maps")
+    has = [d is not None and bool((np.asarray(d) > 0).any()) for d in depths]
+    per_pass = max(1, rays_per_pass // hw)
+    views: dict[int, RenderedView] = {}
+    for with_depth in (True, False):
+        idx = [i for i in range(len(poses)) if has[i] == with_depth]
+        for start in range(0, len(idx), per_pass):
+            group = idx[start : start + per_pass]
+            rays = [image_rays(intr, poses[i][1], nerf.device) for i in group]
+            origins = torch.cat([o for o, _ in rays])
+            dirs = torch.cat([d for _, d in rays])
+            depth = None
+            if with_depth:
+                depth = torch.as_tensor(
+                    np.concatenate([np.asarray(depths[i], np.float32).reshape(-1) for i in group]),
+                    device=nerf.device,
+                )
+            out = nerf.render_rays(
+                origins,
+                dirs,
+                sampler=sampler,
+                depth=depth,
+                semantics=semantics,
+                appearance=appearance,
+                color=color,
+                chunk=max(rays_per_pass, nerf.config.render_chunk) if with_depth else None,
+            )
+            for k, i in enumerate(group):
+                part = {key: v[k * hw : (k + 1) * hw] for key, v in out.items()}
+                views[i] = _view_from_output(part, intr, poses[i][1], poses[i][0])
+    return [views[i] for i in range(len(poses))]
 
 
 def render_views(
@@ -151,28 +221,47 @@ def render_views(
     semantics: bool = True,
     sampler: str | None = None,
     progress: bool = False,
+    color: bool = True,
 ) -> list[RenderedView]:
-    """Render the ``views`` (train, val, all or novel) of a scene at the checkpoint's camera."""
+    """Render the ``views`` (train, val, all or novel) of a scene at the checkpoint's camera.
+    With the scene, its frames' measured depth guides the samples where the config says so."""
     poses = view_poses(nerf, views, scene)
     intr = scene.intrinsics if scene is not None else nerf.info.intrinsics
-    it = poses
+    depth_of = {}
+    if scene is not None and views != "novel":
+        depth_of = {f.name: f.depth for f in scene.frames}
+    depths = [depth_of.get(name) for name, _ in poses]
+    step = 8 if progress else len(poses) or 1  # views per progress update
+    bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        it = tqdm(poses, desc=f"render {views}", unit="view", dynamic_ncols=True)
-    return [
-        render_image(nerf, pose, intr, name=name, semantics=semantics, sampler=sampler)
-        for name, pose in it
-    ]
+        bar = tqdm(total=len(poses), desc=f"render {views}", unit="view", dynamic_ncols=True)
+    out: list[RenderedView] = []
+    for i in range(0, len(poses), step):
+        out += render_frames(
+            nerf,
+            poses[i : i + step],
+            intr,
+            depths[i : i + step],
+            semantics=semantics,
+            sampler=sampler,
+            color=color,
+        )
+        if bar is not None:
+            bar.update(len(poses[i : i + step]))
+    if bar is not None:
+        bar.close()
+    return out
 
 
 def render_pseudo_labels(
     nerf: SemanticNerf, scene: Scene | None = None, views: str = "train", sampler: str | None = None
 ) -> dict[str, np.ndarray]:
-    """NYU40 pseudo-labels ``{frame name: (H, W) uint8}`` rendered at the ``views``."""
-    return {
-        v.name: v.labels for v in render_views(nerf, scene, views, semantics=True, sampler=sampler)
-    }
+    """NYU40 pseudo-labels ``{frame name: (H, W) uint8}`` rendered at the ``views`` (labels
+    only: no colour is computed)."""
+    rendered = render_views(nerf, scene, views, semantics=True, sampler=sampler, color=False)
+    return {v.name: v.labels for v in rendered}
 
 
 def write_rendered_views(

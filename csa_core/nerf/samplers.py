@@ -1,12 +1,23 @@
 """Where to put samples along rays. Every sampler returns packed ``RaySamples``.
 
+Functions (the algorithms):
+
 - ``sample_uniform`` / ``sample_reference``: the paper's sampler, stratified samples then
   importance samples from their weights (256 + 256 in the reference preset).
 - ``sample_depth_guided``: training rays with a measured depth get most samples in a band
   around it and a few stratified ones over the rest of the ray; the intervals tile
   ``[t_near, t_far]`` so that free space is still supervised. Rays without depth get stratified
   samples only (the fallback when a scene has no depth at all).
+- ``sample_band``: samples only inside the band around the measured depth (rendering views
+  that have depth: the space in front of a measured surface is empty).
 - ``OccupancyGrid``: fixed-step marching that drops samples in cells known to be empty.
+
+Objects (what the trainer and the renderer hold), in the manner of nerfacc's estimators: each
+owns its state and its update schedule, ``sampler.sampling(origins, dirs, t_near, t_far, ...)``
+places samples and ``sampler.update_every_n_steps(step, density_fn)`` refreshes the state
+during training (a no-op for stateless samplers): ``UniformSampler``, ``ReferenceSampler``,
+``DepthGuidedSampler`` (with a fallback sampler for rays without depth) and
+``OccupancySampler``. ``SemanticNerf.make_sampler`` builds them from the config.
 
 Rays use unit-z camera directions, so ``t`` is metric z-depth. ``density_fn(points)`` maps
 world points ``(N, 3)`` to densities ``(N,)``.
@@ -167,6 +178,45 @@ def sample_depth_guided(
     return _dense_samples(edges)
 
 
+def sample_band(
+    t_near: Tensor,
+    t_far: Tensor,
+    depth: Tensor,
+    n: int,
+    band: float,
+    band_fraction: float = 0.0,
+    stratified: bool = False,
+    generator: torch.Generator | None = None,
+) -> RaySamples:
+    """``n`` intervals tiling ``depth +- (band + band_fraction * depth)`` (clipped to
+    ``[t_near, t_far]``) and nothing else: the space in front of a measured surface is taken to
+    be empty. Every ray must have a measurement (``depth > 0``)."""
+    half = band + band_fraction * depth
+    lo = torch.maximum(depth - half, t_near)
+    hi = torch.maximum(torch.minimum(depth + half, t_far), lo)
+    return sample_uniform(lo, hi, n, stratified, generator)
+
+
+def merge_samples(parts: list[tuple[Tensor, RaySamples]], num_rays: int) -> RaySamples:
+    """One packed ``RaySamples`` of ``num_rays`` rays from samplings of disjoint ray subsets,
+    each given as (the subset's ray ids, its samples); each ray's samples stay in ``t`` order."""
+    parts = [(ids, s) for ids, s in parts if len(s) > 0]
+    if len(parts) == 1 and parts[0][1].per_ray is not None:
+        ids, s = parts[0]
+        if ids.shape[0] == num_rays and bool(
+            (ids == torch.arange(num_rays, device=ids.device)).all()
+        ):
+            return s
+    if not parts:
+        empty = torch.zeros(0)
+        return RaySamples(empty.long(), empty, empty, num_rays)
+    ri = torch.cat([ids[s.ray_indices] for ids, s in parts])
+    starts = torch.cat([s.t_starts for _, s in parts])
+    ends = torch.cat([s.t_ends for _, s in parts])
+    order = torch.argsort(ri, stable=True)
+    return RaySamples(ri[order], starts[order], ends[order], num_rays)
+
+
 class OccupancyGrid(nn.Module):
     """A binary occupancy grid over the unit cube with fixed-step, empty-space-skipping marching.
 
@@ -318,3 +368,239 @@ class OccupancyGrid(nn.Module):
         ri, t = ri[order], t[order]
         half = 0.5 * dt[ri]
         return RaySamples(ri, t - half, t + half, n_rays)
+
+
+class RaySampler:
+    """A sampler object: ``sampling`` places samples along rays, ``update_every_n_steps``
+    refreshes its state during training (nothing here: stateless samplers)."""
+
+    uses_depth = False  # whether ``sampling`` reads the measured depth
+
+    def sampling(
+        self,
+        origins: Tensor,
+        dirs: Tensor,
+        t_near: Tensor,
+        t_far: Tensor,
+        *,
+        depth: Tensor | None = None,
+        density_fn: DensityFn | None = None,
+        stratified: bool = False,
+        generator: torch.Generator | None = None,
+    ) -> RaySamples:
+        raise NotImplementedError
+
+    def update_every_n_steps(
+        self, step: int, density_fn: DensityFn, generator: torch.Generator | None = None
+    ) -> None:
+        """Called by the trainer before every step ``step`` (0-based)."""
+
+
+class UniformSampler(RaySampler):
+    """``n`` equal (stratified in training) intervals between the box entry and exit."""
+
+    def __init__(self, n: int):
+        self.n = n
+
+    def sampling(
+        self,
+        origins,
+        dirs,
+        t_near,
+        t_far,
+        *,
+        depth=None,
+        density_fn=None,
+        stratified=False,
+        generator=None,
+    ) -> RaySamples:
+        return sample_uniform(t_near, t_far, self.n, stratified, generator)
+
+
+class ReferenceSampler(RaySampler):
+    """The paper's sampler: ``n_uniform`` stratified samples, then ``n_importance`` samples
+    from their weights under the current density."""
+
+    def __init__(self, n_uniform: int, n_importance: int):
+        self.n_uniform, self.n_importance = n_uniform, n_importance
+
+    def sampling(
+        self,
+        origins,
+        dirs,
+        t_near,
+        t_far,
+        *,
+        depth=None,
+        density_fn=None,
+        stratified=False,
+        generator=None,
+    ) -> RaySamples:
+        if density_fn is None:
+            raise ValueError("ReferenceSampler needs density_fn for its importance samples")
+        with torch.no_grad():
+            return sample_reference(
+                origins,
+                dirs,
+                t_near,
+                t_far,
+                density_fn,
+                self.n_uniform,
+                self.n_importance,
+                stratified,
+                generator,
+            )
+
+
+class DepthGuidedSampler(RaySampler):
+    """Samples around the measured depth of each ray.
+
+    ``n_spread > 0`` (training): ``n_band`` samples in the band and ``n_spread`` over the rest
+    of the ray (``sample_depth_guided``), so free space is seen too. ``n_spread == 0``
+    (rendering a view that has depth): the band only (``sample_band``). Rays without a
+    measurement inside the box go to ``fallback`` (e.g. the occupancy march), or, without one,
+    get ``n_band + n_spread`` stratified samples over the whole ray.
+    """
+
+    uses_depth = True
+
+    def __init__(
+        self,
+        n_band: int,
+        n_spread: int,
+        band: float,
+        band_fraction: float = 0.0,
+        fallback: RaySampler | None = None,
+    ):
+        self.n_band, self.n_spread = n_band, n_spread
+        self.band, self.band_fraction = band, band_fraction
+        self.fallback = fallback
+
+    def update_every_n_steps(self, step, density_fn, generator=None) -> None:
+        if self.fallback is not None:
+            self.fallback.update_every_n_steps(step, density_fn, generator)
+
+    def _guided(self, t_near, t_far, depth, stratified, generator) -> RaySamples:
+        if self.n_spread > 0:
+            return sample_depth_guided(
+                t_near,
+                t_far,
+                depth,
+                self.n_band,
+                self.n_spread,
+                self.band,
+                self.band_fraction,
+                stratified,
+                generator,
+            )
+        return sample_band(
+            t_near, t_far, depth, self.n_band, self.band, self.band_fraction, stratified, generator
+        )
+
+    def sampling(
+        self,
+        origins,
+        dirs,
+        t_near,
+        t_far,
+        *,
+        depth=None,
+        density_fn=None,
+        stratified=False,
+        generator=None,
+    ) -> RaySamples:
+        n_rays = origins.shape[0]
+        if depth is None:
+            depth = torch.zeros_like(t_near)
+        has = (depth > 0) & (depth < t_far)
+        if self.fallback is None and self.n_spread > 0:
+            # Rays without depth: stratified over the whole ray, inside sample_depth_guided.
+            return self._guided(t_near, t_far, depth, stratified, generator)
+        if self.fallback is None:
+            raise ValueError("DepthGuidedSampler: band-only sampling needs a fallback sampler")
+        if bool(has.all()):
+            return self._guided(t_near, t_far, depth, stratified, generator)
+        with_d = torch.nonzero(has).squeeze(-1)
+        without = torch.nonzero(~has).squeeze(-1)
+        parts = []
+        if with_d.numel():
+            parts.append(
+                (
+                    with_d,
+                    self._guided(
+                        t_near[with_d], t_far[with_d], depth[with_d], stratified, generator
+                    ),
+                )
+            )
+        parts.append(
+            (
+                without,
+                self.fallback.sampling(
+                    origins[without],
+                    dirs[without],
+                    t_near[without],
+                    t_far[without],
+                    density_fn=density_fn,
+                    stratified=stratified,
+                    generator=generator,
+                ),
+            )
+        )
+        return merge_samples(parts, n_rays)
+
+
+class OccupancySampler(RaySampler):
+    """Empty-space-skipping march through ``grid`` (an ``OccupancyGrid`` over ``box``).
+
+    The grid is refreshed every ``update_every`` training steps (a full pass at step 0, a
+    random quarter of the cells after). With ``prune`` (rendering), rays stop once opaque and
+    samples of near-zero weight are dropped; training samples are not pruned.
+    """
+
+    def __init__(
+        self,
+        grid: OccupancyGrid,
+        box: SceneBox,
+        max_samples: int | None,
+        update_every: int = 16,
+        ema_decay: float = 0.95,
+        prune: bool = True,
+    ):
+        self.grid, self.box = grid, box
+        self.max_samples = max_samples
+        self.update_every, self.ema_decay = update_every, ema_decay
+        self.prune = prune
+
+    def update_every_n_steps(self, step, density_fn, generator=None) -> None:
+        if step % self.update_every == 0:
+            self.grid.update(
+                self.box,
+                density_fn,
+                decay=self.ema_decay,
+                generator=generator,
+                fraction=0.25 if step else 1.0,
+            )
+
+    def sampling(
+        self,
+        origins,
+        dirs,
+        t_near,
+        t_far,
+        *,
+        depth=None,
+        density_fn=None,
+        stratified=False,
+        generator=None,
+    ) -> RaySamples:
+        return self.grid.sampling(
+            self.box,
+            origins,
+            dirs,
+            t_near,
+            t_far,
+            stratified,
+            generator,
+            max_samples=self.max_samples,
+            density_fn=density_fn if self.prune else None,
+        )

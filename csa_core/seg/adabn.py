@@ -3,7 +3,7 @@
 After training on rendered views the network is run on camera images, whose colour and
 noise statistics differ; recomputing each BatchNorm layer's running mean and variance on
 the camera images adapts the network without labels and without touching a weight
-(DESIGN.md, method step 4). Statistics of a single scene are narrower than those of the
+(docs/method.md, "Adapt"). Statistics of a single scene are narrower than those of the
 training set: a network that leans on absolute colour can lose accuracy under them, so
 AdaBN is a choice to measure per setting, not a free gain.
 """

@@ -1,7 +1,7 @@
 """Settings of segmentation training, kept free of torch so command lines can show them cheaply.
 
 Pre-training values are ours, sized for a light network on a 2-core CPU; the paper's values
-(DESIGN.md, reference numbers) are named as such.
+(docs/method.md "Reference numbers") are named as such.
 """
 
 from __future__ import annotations
@@ -18,13 +18,21 @@ ARCH_NAMES = (
     "deeplabv3_mobilenet_v3_large",
     "lraspp_mobilenet_v3_large",
 )
-# DESIGN.md reference numbers: DeepLabv3-ResNet101, 40 NYU classes.
+# docs/method.md "Reference numbers": DeepLabv3-ResNet101, 40 NYU classes.
 PAPER_ARCH = "deeplabv3_resnet101"
 DEFAULT_ARCH = "lraspp_mobilenet_v3_large"  # ours: 3.2 M parameters, trains on a CPU
 
-# DESIGN.md reference numbers (the paper's adaptation setting): segmentation Adam lr 1e-5, batch 4.
+# docs/method.md "Reference numbers" (the paper's adaptation setting): segmentation Adam lr 1e-5, batch 4.
 PAPER_ADAPT_LR = 1e-5
 PAPER_ADAPT_BATCH_SIZE = 4
+# docs/method.md "Reference numbers": images 320x240 (width x height).
+PAPER_SIZE = (320, 240)
+# The official code's pre-training (docs/presets.md "Pre-training presets"): Adam lr 1e-4
+# with polynomial decay (power 0.9) over 150 epochs, batch 4; flips, rotations of up to 10
+# degrees, crops of the image scaled by 1.2 and colour jitter 0.3 / 0.3 / 0.3 / 0.05.
+PAPER_PRETRAIN_LR = 1e-4
+PAPER_PRETRAIN_EPOCHS = 150
+PAPER_PRETRAIN_BATCH_SIZE = 4
 
 SCHEDULES = ("poly", "cosine", "constant")
 
@@ -57,7 +65,7 @@ class TrainConfig:
 
     @classmethod
     def paper_adaptation(cls, **overrides: Any) -> TrainConfig:
-        """The paper's fine-tuning setting (Adam lr 1e-5, batch 4, see DESIGN.md)."""
+        """The paper's fine-tuning setting (Adam lr 1e-5, batch 4, see docs/method.md "Reference numbers")."""
         return cls(**{"lr": PAPER_ADAPT_LR, "batch_size": PAPER_ADAPT_BATCH_SIZE, **overrides})
 
     def __post_init__(self) -> None:
@@ -102,3 +110,64 @@ class PretrainConfig:
     label_folder: str = NYU40_FOLDER
     augment: AugmentConfig | None = field(default_factory=AugmentConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+
+
+def paper_pretraining() -> PretrainConfig:
+    """The paper's network and input size, DeepLabv3-ResNet101 at 320x240 (built with
+    ``weights=None``: nothing is downloaded; the official code starts from an
+    ImageNet-pretrained backbone, which ``csa seg pretrain --weights`` can supply from a
+    local file), trained as the official pre-training config does."""
+    crop = 1.0 / 1.2**2  # a 320x240 crop of the image scaled by 1.2
+    return PretrainConfig(
+        arch=PAPER_ARCH,
+        size=PAPER_SIZE,
+        augment=AugmentConfig(
+            hflip=0.5,
+            rotation_deg=10.0,
+            crop_scale=(crop, crop),
+            crop_aspect_jitter=0.0,
+            brightness=0.3,
+            contrast=0.3,
+            saturation=0.3,
+            hue=0.05,
+        ),
+        train=TrainConfig(
+            epochs=PAPER_PRETRAIN_EPOCHS,
+            batch_size=PAPER_PRETRAIN_BATCH_SIZE,
+            lr=PAPER_PRETRAIN_LR,
+            schedule="poly",
+            poly_power=0.9,
+        ),
+    )
+
+
+def cpu_pretraining() -> PretrainConfig:
+    """Ours: the light network at 160x120, trainable from scratch on a 2-core CPU."""
+    return PretrainConfig()
+
+
+# Pre-training presets by name, as ``csa seg pretrain --preset`` picks them; ``paper`` is the
+# network and input size the ``paper`` adaptation preset (csa_core.adapt.config) expects.
+PRETRAIN_PRESETS = {"paper": paper_pretraining, "cpu": cpu_pretraining}
+
+
+def pretrain_preset(name: str) -> PretrainConfig:
+    """A fresh pre-training config of the preset ``name`` (``paper`` or ``cpu``)."""
+    try:
+        return PRETRAIN_PRESETS[name]()
+    except KeyError:
+        raise ValueError(
+            f"unknown pre-training preset {name!r} (choose from {', '.join(PRETRAIN_PRESETS)})"
+        ) from None
+
+
+def paper_network_note(preset: str, arch: str, size: tuple[int, int] | None) -> str | None:
+    """A note when an adaptation under the ``paper`` preset runs another network or input
+    size than the paper's (``None`` otherwise, and for the other presets)."""
+    if preset != "paper" or (arch == PAPER_ARCH and tuple(size or ()) == PAPER_SIZE):
+        return None
+    shown = f"{size[0]}x{size[1]}" if size else "its own size"
+    return (
+        f"note: the paper preset's network is {PAPER_ARCH} at {PAPER_SIZE[0]}x{PAPER_SIZE[1]} "
+        f"(csa seg pretrain --preset paper); this run adapts {arch} at {shown}"
+    )

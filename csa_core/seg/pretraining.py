@@ -28,7 +28,7 @@ def pretrain(
     """Train a fresh network on labelled scenes and keep the best one on the validation views.
 
     Without ``val_scenes`` the network trains on each scene's training views and is scored
-    on each scene's validation views (DESIGN.md split). With ``val_scenes`` it trains on all
+    on each scene's validation views (the split of docs/method.md "Protocols and metrics"). With ``val_scenes`` it trains on all
     views of ``train_scenes`` and is scored on the validation views of ``val_scenes``.
     ``weights`` is an optional local safetensors file to start from (torchvision names).
     The checkpoint at ``out`` records the config and the scenes used. ``on_progress`` is

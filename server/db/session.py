@@ -13,10 +13,13 @@ from sqlalchemy.orm import Session, sessionmaker
 
 def make_engine(url: str) -> Engine:
     """An engine; SQLite files get WAL journaling and a busy timeout so that the API, the
-    embedded worker and standalone workers can share one database file."""
+    executor's threads (and API replicas on one host) can share one database file. A PostgreSQL URL
+    without a driver (``postgresql://...``) uses psycopg 3, the driver the server extra installs."""
     parsed = make_url(url)
+    if parsed.drivername == "postgresql":
+        parsed = parsed.set(drivername="postgresql+psycopg")
     if parsed.get_backend_name() != "sqlite":
-        return create_engine(url, pool_pre_ping=True)
+        return create_engine(parsed, pool_pre_ping=True)
     if parsed.database and parsed.database != ":memory:":
         Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
     engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})

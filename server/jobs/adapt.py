@@ -1,13 +1,17 @@
-"""``adapt``: one step of the continual chain, delegated to ``csa_core.adapt.adapt_one_step``.
+"""``adapt``: one step of the continual chain, the core's ``csa_core.adapt.step.continual_step``.
 
-The job gathers the step's inputs from the service's stores and hands them to the core:
-the lineage's newest network, the scene (its ground truth, when uploaded, is read only to
-score), a replay buffer rendered from the memory-bank NeRFs of the scenes adapted to earlier
-in the lineage, and the replay slice of the lineage root's pre-training scenes. It then
-registers the outputs in one transaction: the new model version (parent = the version it
-started from), the scene's NeRF in the memory bank, and the R-matrix entries this step makes
-computable (the new version on every labelled scene of the lineage, the previous version
-and the root on this scene).
+The job loads the step's inputs from the service's stores: the lineage's newest network and
+its BatchNorm memory (a file of that version), the scene (its ground truth, when uploaded, is
+read only to score), the NeRFs the lineage's earlier steps banked (read from the artifact
+store as stored, :class:`server.memory_bank.StoredNerfMemory`), and the lineage root's
+pre-training scenes. It builds the core's :class:`~csa_core.adapt.step.ContinualState` from
+them and takes the one step that ``csa adapt`` and ``csa experiment`` take, so the same
+inputs, seed and thread count give the same network. It then registers the outputs in one
+transaction: the new model version (parent = the version it started from) with the BatchNorm
+memory after the step, the scene's NeRF in the memory bank (unless the collapse guard skipped
+the scene), and the R-matrix entries this step makes computable (the new version on every
+labelled scene of the lineage, the previous version and the root on this scene), scored by
+the core's ``csa_core.adapt.continual.val_mious``.
 
 Jobs of one lineage run one after another (the worker's lineage lock), so each step starts
 from the version the previous step made.
@@ -25,10 +29,10 @@ from server.db.models import Evaluation, Frame, Job, ModelVersion
 from server.db.models import Scene as SceneRow
 from server.errors import invalid
 from server.jobs.context import JobContext
-from server.jobs.inputs import load_scene, model_file, torch_device
-from server.lookups import active_nerf, get_model, get_scene
-from server.memory_bank import NERF_FILE, add_nerf
-from server.registry import CHECKPOINT_FILE, lineage_chain, register_checkpoint
+from server.jobs.inputs import load_scene, model_file, torch_device, version_file
+from server.lookups import get_model, get_scene
+from server.memory_bank import StoredNerfMemory, add_nerf, lineage_nerfs
+from server.registry import BATCHNORM_FILE, CHECKPOINT_FILE, lineage_chain, register_checkpoint
 from server.schemas.jobs import AdaptParams
 
 
@@ -43,7 +47,7 @@ def prepare(session: Session, params: AdaptParams, job: Job) -> tuple[dict[str, 
         preset(params.preset)
     except ValueError as e:
         raise invalid("params.preset", str(e)) from None
-    normalized = {"scene_id": scene.id, "lineage": model.lineage, "preset": params.preset, "mode": params.mode, "make_current": params.make_current}
+    normalized = {"scene_id": scene.id, "lineage": model.lineage, "preset": params.preset, "mode": params.mode, "seed": params.seed, "make_current": params.make_current}
     return normalized, model.lineage
 
 
@@ -57,102 +61,94 @@ def _finite(x: float | None) -> float | None:
 
 
 def run(ctx: JobContext) -> None:
-    from csa_core.adapt import (
-        MemoryBank,
-        PretrainReplay,
-        ReplayBuffer,
-        adapt_one_step,
-        label_entropy,
-        preset,
-    )
-    from csa_core.data.scene import NYU40_FOLDER
-    from csa_core.nerf.checkpoint import load_checkpoint as load_nerf
-    from csa_core.nerf.checkpoint import save_checkpoint as save_nerf
-    from csa_core.seg import ModelCard, evaluate_scene, load_checkpoint, save_checkpoint
+    from csa_core.adapt import preset
+    from csa_core.adapt.bn_memory import BatchNormMemory
+    from csa_core.adapt.continual import val_mious
+    from csa_core.adapt.step import ContinualState, continual_step
+    from csa_core.experiments.inputs import seeded
+    from csa_core.experiments.report import jsonable
+    from csa_core.seg import load_checkpoint, save_checkpoint
 
     p = ctx.params
     device = torch_device(ctx)
-    config = preset(p["preset"])
+    config = seeded(preset(p["preset"]), p.get("seed", 0))
     if p.get("mode"):
         config.mode = p["mode"]
     config.seg.device = device
+    target_id = p["scene_id"]
 
     with ctx.session() as s:
         chain = lineage_chain(s, p["lineage"])
         if not chain:
             raise LookupError(f"lineage {p['lineage']!r} has no model versions")
         root, base = chain[0], chain[-1]
-        target = s.get(SceneRow, p["scene_id"])
+        target = s.get(SceneRow, target_id)
         if target is None:
-            raise LookupError(f"scene {p['scene_id']} no longer exists")
+            raise LookupError(f"scene {target_id} no longer exists")
         target_name = target.name
-        previous: list[tuple[int, str, dict[str, str]]] = []  # scenes adapted to earlier, oldest first
+        earlier: list[int] = []  # scenes adapted to earlier in the lineage, oldest first
         for m in chain[1:]:
             sid = m.adapted_scene_id
-            if sid is None or sid == p["scene_id"] or any(sid == q[0] for q in previous):
-                continue
-            nerf, row = active_nerf(s, sid), s.get(SceneRow, sid)
-            if nerf is not None and row is not None:
-                previous.append((sid, row.name, dict(nerf.files)))
-        labelled = {sid: _labelled(s, sid) for sid in [p["scene_id"], *(q[0] for q in previous)]}
+            if sid is not None and sid != target_id and sid not in earlier and s.get(SceneRow, sid) is not None:
+                earlier.append(sid)
+        nerfs = lineage_nerfs(s, chain[1:], exclude_scene_id=target_id)
+        labelled = {sid: _labelled(s, sid) for sid in [target_id, *earlier]}
         pretrain_ids = [int(i) for i in (root.meta or {}).get("scene_ids", []) if s.get(SceneRow, int(i)) is not None]
         base_id, base_name, root_id, arch = base.id, base.name, root.id, base.arch
+        has_batchnorm = BATCHNORM_FILE in (base.files or {})
 
     ctx.progress(0.02, f"loading {base_name}", force=True)
     base_path, _ = model_file(ctx, base_id)
     net, card = load_checkpoint(base_path, device=device or "cpu")
     size = tuple(card.input_size) if card.input_size else None
-    scene = load_scene(ctx, p["scene_id"], ground_truth=labelled[p["scene_id"]], size=size)
-
-    ctx.progress(0.05, f"rendering the replay buffer from {len(previous)} earlier scene(s)", force=True)
-    bank = MemoryBank(ctx.workdir / "memory")
-    for _, name, files in previous:
-        bank.add(name, load_nerf(ctx.store.open_verified(files[NERF_FILE]), device=device or "cpu"))
-    replay = ReplayBuffer.from_memory_bank(bank, config.replay.buffer_size, config.replay.views, bank.scenes) if len(bank) else None
+    scene = load_scene(ctx, target_id, ground_truth=labelled[target_id], size=size)
     pretrain_scenes = [load_scene(ctx, sid, ground_truth=True, size=size) for sid in pretrain_ids]
-    pretrain = PretrainReplay.from_scenes(pretrain_scenes, config.replay.pretrain_fraction, config.replay.seed) if pretrain_scenes else None
-    prior = label_entropy(f.labels[NYU40_FOLDER] for sc in pretrain_scenes for f in sc.train_frames if NYU40_FOLDER in f.labels) if pretrain_scenes else None
+    batchnorm = BatchNormMemory.load(version_file(ctx, base_id, BATCHNORM_FILE)) if has_batchnorm else None
+    bank = StoredNerfMemory(ctx.store, nerfs, ctx.workdir / "memory")
+    state = ContinualState.start(config, "ours", bank=bank, pretrain_scenes=pretrain_scenes, batchnorm=batchnorm)
 
-    scores: dict[tuple[int, int], float | None] = {}  # (model "base"/"root"/"new" key, scene id) -> val mIoU
-    if labelled[p["scene_id"]]:
+    scores: dict[tuple[int, int], float | None] = {}  # (model version id, scene id) -> val mIoU
+    if labelled[target_id]:
         ctx.progress(0.1, f"scoring {base_name} on {target_name} before adapting", force=True)
-        scores[(base_id, p["scene_id"])] = _finite(evaluate_scene(net, scene, "val", device=device).miou())
+        scores[(base_id, target_id)] = _finite(val_mious(net, [scene], device)[0])
 
-    ctx.progress(0.15, f"adapting to {target_name} ({config.preset}, {config.mode})", force=True)
-    step = adapt_one_step(net, scene, config, replay, pretrain, prior_entropy=prior, evaluate_before=False, on_progress=ctx.core_progress(0.15, 0.85))
+    ctx.progress(0.15, f"adapting to {target_name} ({config.preset}, {config.mode}; {len(nerfs)} earlier scene(s) to replay)", force=True)
+    record = continual_step(state, net, scene, on_progress=ctx.core_progress(0.15, 0.85))
     ctx.progress(0.85, "scoring the adapted network", force=True)
 
     new_key = -1  # the new version's id is known only once it is registered
-    scores[(new_key, p["scene_id"])] = _finite(step.after.get("val")) if labelled[p["scene_id"]] else None
-    for sid, _, _ in previous:
+    scored = [(target_id, scene)] if labelled[target_id] else []
+    for sid in earlier:
         if labelled[sid]:
             ctx.check()
-            earlier = load_scene(ctx, sid, ground_truth=True, size=size)
-            scores[(new_key, sid)] = _finite(evaluate_scene(net, earlier, "val", device=device).miou())
-    if labelled[p["scene_id"]] and root_id != base_id:
+            scored.append((sid, load_scene(ctx, sid, ground_truth=True, size=size)))
+    for (sid, _), miou in zip(scored, val_mious(net, [sc for _, sc in scored], device), strict=True):
+        scores[(new_key, sid)] = _finite(miou)
+    if labelled[target_id] and root_id != base_id:
         with ctx.session() as s:
-            have_b = s.scalar(select(Evaluation.id).where(Evaluation.model_version_id == root_id, Evaluation.scene_id == p["scene_id"], Evaluation.split == "val").limit(1))
+            have_b = s.scalar(select(Evaluation.id).where(Evaluation.model_version_id == root_id, Evaluation.scene_id == target_id, Evaluation.split == "val").limit(1))
         if have_b is None:
             root_path, _ = model_file(ctx, root_id)
             root_net, _ = load_checkpoint(root_path, device=device or "cpu")
-            scores[(root_id, p["scene_id"])] = _finite(evaluate_scene(root_net, scene, "val", device=device).miou())
+            scores[(root_id, target_id)] = _finite(val_mious(root_net, [scene], device)[0])
             del root_net
 
-    ctx.progress(0.95, "saving the network and the NeRF", force=True)
+    ctx.progress(0.95, "saving the network, its BatchNorm memory and the NeRF", force=True)
     out = ctx.workdir / CHECKPOINT_FILE
-    step_record = step.to_dict()
     metrics = {
-        "val_miou": scores.get((new_key, p["scene_id"])),
-        "before_val_miou": scores.get((base_id, p["scene_id"])),
-        "pseudo_label_miou": _finite(step.pseudo_label_miou),
-        "prediction_miou": _finite(step.prediction_miou),
-        "trained": step.trained,
+        "val_miou": scores.get((new_key, target_id)),
+        "before_val_miou": scores.get((base_id, target_id)),
+        "pseudo_label_miou": _finite(record.get("pseudo_label_miou")),
+        "prediction_miou": _finite(record.get("prediction_miou")),
+        "trained": bool(record.get("trained", True)),
     }
-    save_checkpoint(out, net, ModelCard.for_model(net, input_size=card.input_size, train_config={"task": "adapt", "scene": target_name, "parent": base_name, "adapt": config.to_dict()}, metrics=metrics))
-    nerf_out = None
-    if step.nerf is not None:
-        nerf_out = ctx.workdir / NERF_FILE
-        save_nerf(step.nerf, nerf_out)
+    train_config = {"task": "adapt", "scene": target_name, "parent": base_name, "adapt": config.to_dict()}
+    save_checkpoint(out, net, card.child(train_config=train_config, metrics=metrics))
+    extra_files = {}
+    if state.batchnorm is not None:
+        extra_files[BATCHNORM_FILE] = ctx.workdir / BATCHNORM_FILE
+        state.batchnorm.save(extra_files[BATCHNORM_FILE])
+    step_record = jsonable(record)
 
     def register(s: Session) -> dict[str, Any]:
         n = len(s.scalars(select(ModelVersion.id).where(ModelVersion.lineage == p["lineage"])).all())
@@ -164,16 +160,17 @@ def run(ctx: JobContext) -> None:
             lineage=p["lineage"],
             arch=arch,
             parent_id=base_id,
-            adapted_scene_id=p["scene_id"],
+            adapted_scene_id=target_id,
             job_id=ctx.job_id,
             metrics=metrics,
             meta={"task": "adapt", "preset": config.preset, "mode": config.mode, "step": step_record},
             make_current=p["make_current"],
+            extra_files=extra_files,
         )
         nerf_id = None
-        if nerf_out is not None:
-            quality = {"pseudo_label_miou": metrics["pseudo_label_miou"], "final_label_miou": _finite(step.final_label_miou)}
-            nerf_id = add_nerf(s, ctx.store, p["scene_id"], nerf_out, job_id=ctx.job_id, preset=config.nerf.preset, labels_source=f"adapt:{base_name}", quality=quality).id
+        if bank.added is not None:
+            quality = {"pseudo_label_miou": metrics["pseudo_label_miou"], "final_label_miou": _finite(record.get("final_label_miou"))}
+            nerf_id = add_nerf(s, ctx.store, target_id, bank.added[1], job_id=ctx.job_id, preset=config.nerf.preset, labels_source=f"adapt:{base_name}", quality=quality).id
         for (model_key, sid), miou in scores.items():
             s.add(Evaluation(model_version_id=model.id if model_key == new_key else model_key, scene_id=sid, split="val", miou=miou, summary={}, job_id=ctx.job_id))
         return {"model_id": model.id, "model": model.name, "parent_id": base_id, "nerf_id": nerf_id, "metrics": metrics, "decisions": step_record.get("decisions", [])}

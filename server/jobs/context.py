@@ -1,8 +1,18 @@
-"""What a running job sees: its parameters, a scratch folder, progress, logging, cancellation.
+"""What a running job sees: its parameters, a scratch folder, its inputs, progress, logging,
+cancellation and the registration of its outputs.
+
+A job function (``server/jobs/*.py``) sees one API whichever executor runs it:
+``ctx.params``, ``ctx.workdir``, ``ctx.settings``, ``ctx.session()`` and ``ctx.store`` to
+read its inputs, ``ctx.progress`` / ``ctx.core_progress`` / ``ctx.log``, ``ctx.check()``, and
+``ctx.complete(register)`` with a function that registers its outputs in one transaction.
+:class:`LocalJobContext` serves it from this process's database and artifact store (the
+embedded executor); ``server.executors.remote.RemoteJobContext`` serves it inside a Ray task
+from a bundle of inputs read ahead by the API node, and sends progress, logs and the
+registration back to it.
 
 Cancellation is cooperative: :meth:`JobContext.check` (called by :meth:`progress` and from
 the core library's callbacks) raises :class:`JobCancelled` once a cancel was requested, or
-:class:`JobInterrupted` when the worker is shutting down or lost the job, so the job stops
+:class:`JobInterrupted` when the executor is shutting down or lost the job, so the job stops
 between steps and nothing half-made is registered.
 """
 
@@ -12,6 +22,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
@@ -22,8 +33,10 @@ from server.db.session import session_scope
 from server.jobs import queue
 from server.services import Services
 
-_PROGRESS_EVERY = 0.5  # seconds between progress writes
+_PROGRESS_EVERY = 0.5  # seconds between progress reports
 _LOG_FLUSH_EVERY = 1.0
+
+Register = Callable[[Session], dict[str, Any]]
 
 
 class JobCancelled(Exception):
@@ -31,18 +44,20 @@ class JobCancelled(Exception):
 
 
 class JobInterrupted(Exception):
-    """The worker is stopping or no longer owns the job; it goes back to the queue."""
+    """The executor is stopping or no longer owns the job; it goes back to the queue."""
 
 
 class JobContext:
-    def __init__(self, services: Services, job: Job, worker_id: str, workdir: Path, stopping: threading.Event):
-        self.services = services
-        self.job_id = job.id
-        self.kind = job.kind
-        self.params: dict[str, Any] = dict(job.params or {})
-        self.worker_id = worker_id
+    """The part every executor shares: throttled progress, buffered logs, cancellation.
+    Subclasses implement :meth:`_send` (where progress and logs go, and whether a cancel was
+    asked), :meth:`_register`, :meth:`session`, :attr:`store` and :attr:`settings`."""
+
+    def __init__(self, job_id: int, kind: str, params: dict[str, Any], workdir: Path, stopping: threading.Event | None = None):
+        self.job_id = job_id
+        self.kind = kind
+        self.params: dict[str, Any] = dict(params or {})
         self.workdir = workdir
-        self._stopping = stopping
+        self._stopping = stopping or threading.Event()
         self.cancel_requested = threading.Event()
         self.lost = threading.Event()
         self._last_progress = 0.0
@@ -51,42 +66,44 @@ class JobContext:
         self._lock = threading.Lock()
         self.completed_result: dict[str, Any] | None = None
 
-    @property
-    def sessions(self):
-        return self.services.sessions
+    # -- what each executor provides -----------------------------------------------------
 
     @property
-    def store(self):
-        return self.services.store
+    def settings(self) -> Any:
+        raise NotImplementedError
 
     @property
-    def settings(self):
-        return self.services.settings
+    def store(self) -> Any:
+        raise NotImplementedError
 
-    def session(self):
-        """A session that commits on success (``with ctx.session() as s: ...``)."""
-        return session_scope(self.services.sessions)
+    def session(self) -> AbstractContextManager[Session]:
+        """A session on the job's inputs (``with ctx.session() as s: ...``)."""
+        raise NotImplementedError
+
+    def _send(self, progress: float | None, message: str | None, logs: list[tuple[str, str]]) -> None:
+        """Deliver progress and log lines; set :attr:`cancel_requested` / :attr:`lost`."""
+        raise NotImplementedError
+
+    def _register(self, register: Register) -> dict[str, Any]:
+        raise NotImplementedError
+
+    # -- what a job calls ----------------------------------------------------------------
 
     def check(self) -> None:
         """Raise if the job should stop now."""
         if self.lost.is_set():
-            raise JobInterrupted("the worker lost this job's lease")
+            raise JobInterrupted("the executor lost this job")
         if self.cancel_requested.is_set():
             raise JobCancelled("cancelled by request")
         if self._stopping.is_set():
-            raise JobInterrupted("worker shutting down")
+            raise JobInterrupted("executor shutting down")
 
     def progress(self, fraction: float | None = None, message: str | None = None, force: bool = False) -> None:
         """Report progress in [0, 1] and a short status line (throttled), then :meth:`check`."""
         now = time.monotonic()
         if force or now - self._last_progress >= _PROGRESS_EVERY:
             self._last_progress = now
-            try:
-                if queue.report_progress(self.sessions, self.job_id, self.worker_id, fraction, message):
-                    self.cancel_requested.set()
-            except queue.LostJob:
-                self.lost.set()
-            self.flush_logs()
+            self._flush(fraction, message)
         self.check()
 
     def core_progress(self, start: float, end: float) -> Callable[[str, float], None]:
@@ -106,27 +123,58 @@ class JobContext:
             self.flush_logs()
 
     def flush_logs(self) -> None:
+        self._flush(None, None)
+
+    def _flush(self, progress: float | None, message: str | None) -> None:
         with self._lock:
             pending, self._pending_logs = self._pending_logs, []
         self._last_log_flush = time.monotonic()
-        if not pending:
-            return
-        with session_scope(self.sessions) as s:
-            for level, message in pending:
-                queue.append_log(s, self.job_id, message, level)
-            queue.trim_log(s, self.job_id, self.settings.job_log_lines)
+        if pending or progress is not None or message is not None:
+            self._send(progress, message, pending)
 
-    def complete(self, register: Callable[[Session], dict[str, Any]]) -> dict[str, Any]:
+    def complete(self, register: Register) -> dict[str, Any]:
         """Register the job's outputs and mark it succeeded, in one transaction."""
         self.check()
         self.flush_logs()
+        self.completed_result = self._register(register)
+        return self.completed_result
+
+
+class LocalJobContext(JobContext):
+    """A job run by the embedded executor: reads, progress and registration go straight to
+    this process's database and artifact store."""
+
+    def __init__(self, services: Services, job: Job, owner: str, workdir: Path, stopping: threading.Event):
+        super().__init__(job.id, job.kind, job.params, workdir, stopping)
+        self.services = services
+        self.owner = owner
+
+    @property
+    def settings(self):
+        return self.services.settings
+
+    @property
+    def store(self):
+        return self.services.store
+
+    def session(self):
+        """A session that commits on success."""
+        return session_scope(self.services.sessions)
+
+    def _send(self, progress: float | None, message: str | None, logs: list[tuple[str, str]]) -> None:
         try:
-            result = queue.finish(self.sessions, self.job_id, self.worker_id, queue.SUCCEEDED, register=register)
+            if queue.report(self.services.sessions, self.job_id, self.owner, progress, message, logs, self.settings.job_log_lines):
+                self.cancel_requested.set()
+        except queue.LostJob:
+            self.lost.set()
+
+    def _register(self, register: Register) -> dict[str, Any]:
+        try:
+            result = queue.finish(self.services.sessions, self.job_id, self.owner, queue.SUCCEEDED, register=register)
         except queue.LostJob as e:
             self.lost.set()
             raise JobInterrupted(str(e)) from None
-        self.completed_result = result or {}
-        return self.completed_result
+        return result or {}
 
 
 class JobLogHandler(logging.Handler):
@@ -136,11 +184,15 @@ class JobLogHandler(logging.Handler):
         super().__init__(level=logging.INFO)
         self.ctx = ctx
         self.thread_id = thread_id
+        self._emitting = False  # a record logged while delivering the log is not copied again
 
     def emit(self, record: logging.LogRecord) -> None:
-        if record.thread != self.thread_id:
+        if record.thread != self.thread_id or self._emitting:
             return
+        self._emitting = True
         try:
             self.ctx.log(f"{record.name}: {record.getMessage()}", record.levelname)
         except Exception:  # noqa: BLE001 - logging must never break the job
             self.handleError(record)
+        finally:
+            self._emitting = False

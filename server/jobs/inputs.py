@@ -42,3 +42,15 @@ def model_file(ctx: JobContext, model_id: int) -> tuple[Path, ModelVersion]:
             raise LookupError(f"model version {model_id} no longer exists")
         path = ctx.store.materialize(checkpoint_sha(model), ctx.workdir / "models" / str(model_id) / CHECKPOINT_FILE)
     return path, model
+
+
+def version_file(ctx: JobContext, model_id: int, name: str) -> Path:
+    """Another stored file of a version (e.g. its BatchNorm memory), linked into the job's folder."""
+    with ctx.session() as s:
+        model = s.get(ModelVersion, model_id)
+        if model is None:
+            raise LookupError(f"model version {model_id} no longer exists")
+        sha = (model.files or {}).get(name)
+        if sha is None:
+            raise LookupError(f"model version {model_id} has no file {name!r}")
+        return ctx.store.materialize(sha, ctx.workdir / "models" / str(model_id) / name)

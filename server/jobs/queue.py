@@ -1,9 +1,16 @@
-"""The job queue in the database: enqueue, claim, heartbeat, finish, cancel, recover.
+"""The job queue in the database: enqueue, claim, leases, progress, finish, cancel, recover.
 
-Every state change is one conditional UPDATE (``... WHERE status = 'running' AND worker_id =
-me``), so a worker that lost its lease can never overwrite what another worker did. Jobs of
-one model lineage run one at a time, oldest first: a worker claims a lineage by inserting its
-row in ``lineage_locks``, whose primary key makes the claim exclusive on any database.
+A job runs under an *owner*: the executor of one API process (``server/executors``), which
+runs it in the process (embedded) or hands it to a Ray cluster. Every state change is one
+conditional UPDATE (``... WHERE status = 'running' AND worker_id = owner``), so an owner that
+lost a job can never overwrite what happened to it since. Jobs of one model lineage run one
+at a time, oldest first: an owner claims a lineage by inserting its row in ``lineage_locks``,
+whose primary key makes the claim exclusive on any database, whichever API process claims.
+
+The owner renews the leases of all its running jobs from one heartbeat. A running job whose
+owner is gone (a process of this host that no longer exists, or a lease that expired) is
+re-queued by the next executor that looks, or failed with the reason after
+``max_attempts`` attempts: so restarting the API never leaves a job ``running`` forever.
 """
 
 from __future__ import annotations
@@ -11,7 +18,7 @@ from __future__ import annotations
 import datetime as dt
 import os
 import socket
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from sqlalchemy import delete, select, update
@@ -27,7 +34,7 @@ STATUSES = (QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELLED)
 
 
 class LostJob(RuntimeError):
-    """This worker no longer owns the job (its lease expired and the job was recovered)."""
+    """This owner no longer owns the job (it was recovered, re-queued or ended meanwhile)."""
 
 
 def enqueue(session: Session, kind: str, params: dict[str, Any], lineage: str | None) -> Job:
@@ -47,8 +54,8 @@ def trim_log(session: Session, job_id: int, keep: int) -> None:
         session.execute(delete(JobLog).where(JobLog.job_id == job_id, JobLog.id <= cutoff))
 
 
-def claim_next(factory: sessionmaker[Session], worker_id: str, lease_seconds: float, kinds: set[str]) -> Job | None:
-    """Mark the oldest runnable queued job as running for ``worker_id`` and return it."""
+def claim_next(factory: sessionmaker[Session], owner: str, lease_seconds: float, kinds: set[str]) -> Job | None:
+    """Mark the oldest runnable queued job as running for ``owner`` and return it."""
     with session_scope(factory) as s:
         candidates = s.scalars(select(Job).where(Job.status == QUEUED, Job.kind.in_(kinds)).order_by(Job.id).limit(50)).all()
     seen_lineages: set[str] = set()
@@ -68,7 +75,7 @@ def claim_next(factory: sessionmaker[Session], worker_id: str, lease_seconds: fl
                     .where(Job.id == job.id, Job.status == QUEUED)
                     .values(
                         status=RUNNING,
-                        worker_id=worker_id,
+                        worker_id=owner,
                         attempts=Job.attempts + 1,
                         started_at=now,
                         heartbeat_at=now,
@@ -78,43 +85,61 @@ def claim_next(factory: sessionmaker[Session], worker_id: str, lease_seconds: fl
                     )
                 )
                 if res.rowcount != 1:
-                    raise LostJob("claimed by another worker")
-                append_log(s, job.id, f"started on worker {worker_id}")
+                    raise LostJob("claimed by another owner")
                 claimed = s.get(Job, job.id)
                 assert claimed is not None
+                append_log(s, job.id, f"started on worker {owner} (attempt {claimed.attempts})")
             return claimed
         except (IntegrityError, LostJob):
             continue
     return None
 
 
-def heartbeat(factory: sessionmaker[Session], job_id: int, worker_id: str, lease_seconds: float) -> bool:
-    """Extend the lease; returns whether cancellation was requested. Raises :class:`LostJob`."""
+def renew_leases(factory: sessionmaker[Session], owner: str, lease_seconds: float) -> tuple[set[int], set[int]]:
+    """Extend the lease of every job ``owner`` runs; returns (the ids it still owns, those of
+    them whose cancellation was requested). A job missing from the first set was lost."""
     now = utcnow()
     with session_scope(factory) as s:
-        res = s.execute(
+        s.execute(
             update(Job)
-            .where(Job.id == job_id, Job.worker_id == worker_id, Job.status == RUNNING)
+            .where(Job.worker_id == owner, Job.status == RUNNING)
             .values(heartbeat_at=now, lease_expires_at=now + dt.timedelta(seconds=lease_seconds))
         )
-        if res.rowcount != 1:
-            raise LostJob(f"job {job_id} is no longer running on worker {worker_id}")
-        return bool(s.scalar(select(Job.cancel_requested).where(Job.id == job_id)))
+        rows = s.execute(select(Job.id, Job.cancel_requested).where(Job.worker_id == owner, Job.status == RUNNING)).all()
+    return {job_id for job_id, _ in rows}, {job_id for job_id, cancel in rows if cancel}
 
 
-def report_progress(factory: sessionmaker[Session], job_id: int, worker_id: str, progress: float | None, message: str | None) -> bool:
-    """Record progress; returns whether cancellation was requested. Raises :class:`LostJob`."""
+def report(
+    factory: sessionmaker[Session],
+    job_id: int,
+    owner: str,
+    progress: float | None = None,
+    message: str | None = None,
+    logs: Iterable[tuple[str, str]] = (),
+    keep_log_lines: int | None = None,
+) -> bool:
+    """Record a running job's progress, status line and log lines (``(level, message)``) in
+    one transaction; returns whether cancellation was requested. Raises :class:`LostJob`
+    (after keeping the log lines) when ``owner`` no longer runs the job."""
     values: dict[str, Any] = {}
     if progress is not None:
         values["progress"] = max(0.0, min(1.0, float(progress)))
     if message is not None:
         values["message"] = message[:1000]
+    lost = False
     with session_scope(factory) as s:
         if values:
-            res = s.execute(update(Job).where(Job.id == job_id, Job.worker_id == worker_id, Job.status == RUNNING).values(**values))
-            if res.rowcount != 1:
-                raise LostJob(f"job {job_id} is no longer running on worker {worker_id}")
-        return bool(s.scalar(select(Job.cancel_requested).where(Job.id == job_id)))
+            res = s.execute(update(Job).where(Job.id == job_id, Job.worker_id == owner, Job.status == RUNNING).values(**values))
+            lost = res.rowcount != 1
+        lines = list(logs)
+        for level, line in lines:
+            append_log(s, job_id, line, level)
+        if lines and keep_log_lines is not None:
+            trim_log(s, job_id, keep_log_lines)
+        cancel = bool(s.scalar(select(Job.cancel_requested).where(Job.id == job_id)))
+    if lost:
+        raise LostJob(f"job {job_id} is no longer running under {owner}")
+    return cancel
 
 
 def _release_lineage(s: Session, job: Job) -> None:
@@ -125,24 +150,24 @@ def _release_lineage(s: Session, job: Job) -> None:
 def finish(
     factory: sessionmaker[Session],
     job_id: int,
-    worker_id: str,
+    owner: str,
     status: str,
     result: dict[str, Any] | None = None,
     error: str | None = None,
     register: Callable[[Session], dict[str, Any]] | None = None,
 ) -> dict[str, Any] | None:
-    """End a job this worker owns; ``register`` adds the job's outputs (model versions, memory
+    """End a job ``owner`` runs; ``register`` adds the job's outputs (model versions, memory
     bank entries) in the same transaction, so outputs exist exactly when the job succeeded."""
     with session_scope(factory) as s:
         job = s.get(Job, job_id)
-        if job is None or job.status != RUNNING or job.worker_id != worker_id:
-            raise LostJob(f"job {job_id} is no longer running on worker {worker_id}")
+        if job is None or job.status != RUNNING or job.worker_id != owner:
+            raise LostJob(f"job {job_id} is no longer running under {owner}")
         if register is not None:
             result = register(s)
         now = utcnow()
         res = s.execute(
             update(Job)
-            .where(Job.id == job_id, Job.worker_id == worker_id, Job.status == RUNNING)
+            .where(Job.id == job_id, Job.worker_id == owner, Job.status == RUNNING)
             .values(
                 status=status,
                 result=result,
@@ -154,17 +179,17 @@ def finish(
             )
         )
         if res.rowcount != 1:
-            raise LostJob(f"job {job_id} is no longer running on worker {worker_id}")
+            raise LostJob(f"job {job_id} is no longer running under {owner}")
         _release_lineage(s, job)
         append_log(s, job_id, f"{status}" + (f": {error}" if error else ""), "ERROR" if status == FAILED else "INFO")
     return result
 
 
-def release_to_queue(factory: sessionmaker[Session], job_id: int, worker_id: str, reason: str) -> None:
-    """Give a running job back (worker shutting down); the attempt does not count."""
+def release_to_queue(factory: sessionmaker[Session], job_id: int, owner: str, reason: str) -> None:
+    """Give a running job back (its owner is shutting down); the attempt does not count."""
     with session_scope(factory) as s:
         job = s.get(Job, job_id)
-        if job is None or job.status != RUNNING or job.worker_id != worker_id:
+        if job is None or job.status != RUNNING or job.worker_id != owner:
             return
         if job.cancel_requested:
             job.status, job.finished_at, job.error, job.message = CANCELLED, utcnow(), "cancelled by request", "cancelled"
@@ -174,6 +199,48 @@ def release_to_queue(factory: sessionmaker[Session], job_id: int, worker_id: str
         job.worker_id, job.lease_expires_at = None, None
         _release_lineage(s, job)
         append_log(s, job_id, job.message, "WARNING")
+
+
+def _after_lost_attempt(job: Job, reason: str, max_attempts: int, now: dt.datetime) -> tuple[dict[str, Any], str]:
+    """What becomes of a running job whose attempt was lost (owner or Ray worker died):
+    cancelled if that was asked, failed after ``max_attempts`` attempts, else queued again.
+    Returns the column values and the log line."""
+    if job.cancel_requested:
+        return {"status": CANCELLED, "finished_at": now, "error": "cancelled by request", "message": "cancelled"}, f"cancelled: {reason} while cancelling"
+    if job.attempts >= max_attempts:
+        msg = f"{reason} during attempt {job.attempts} of {max_attempts}; not retried"
+        return {"status": FAILED, "finished_at": now, "error": msg, "message": "failed"}, f"failed: {msg}"
+    msg = f"re-queued after attempt {job.attempts} of {max_attempts}: {reason}"
+    return {"status": QUEUED, "message": msg}, msg
+
+
+def _end_lost_attempt(s: Session, job: Job, reason: str, max_attempts: int) -> bool:
+    values, note = _after_lost_attempt(job, reason, max_attempts, utcnow())
+    res = s.execute(
+        update(Job)
+        .where(Job.id == job.id, Job.status == RUNNING, Job.worker_id == job.worker_id)
+        .values(worker_id=None, lease_expires_at=None, **values)
+    )
+    if res.rowcount != 1:
+        return False
+    _release_lineage(s, job)
+    append_log(s, job.id, note, "WARNING" if values["status"] != FAILED else "ERROR")
+    return True
+
+
+def attempt_lost(factory: sessionmaker[Session], job_id: int, owner: str, reason: str, max_attempts: int) -> str | None:
+    """An attempt of a job ``owner`` runs died with its process (a Ray worker or node):
+    re-queue the job, or fail it after ``max_attempts``. Returns the job's new status (None
+    if ``owner`` no longer ran it)."""
+    with session_scope(factory) as s:
+        job = s.get(Job, job_id)
+        if job is None or job.status != RUNNING or job.worker_id != owner:
+            return None
+        if not _end_lost_attempt(s, job, reason, max_attempts):
+            return None
+        s.flush()
+        s.refresh(job)
+        return job.status
 
 
 def request_cancel(session: Session, job: Job) -> Job:
@@ -189,13 +256,13 @@ def request_cancel(session: Session, job: Job) -> Job:
     return job
 
 
-# -- recovery of jobs whose worker died ---------------------------------------------------
+# -- recovery of jobs whose owner died ----------------------------------------------------
 
-_LOCAL_WORKERS: set[str] = set()  # worker ids alive in this process
+_LOCAL_OWNERS: set[str] = set()  # owner ids alive in this process
 
 
-def note_local_worker(worker_id: str, alive: bool) -> None:
-    (_LOCAL_WORKERS.add if alive else _LOCAL_WORKERS.discard)(worker_id)
+def note_local_owner(owner: str, alive: bool) -> None:
+    (_LOCAL_OWNERS.add if alive else _LOCAL_OWNERS.discard)(owner)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -208,21 +275,21 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def _owner_gone(w: Worker | None, worker_id: str | None) -> str | None:
-    """Why the owning worker is certainly dead (same host, process gone), or None if unknown."""
+def _owner_gone(w: Worker | None, owner: str | None) -> str | None:
+    """Why the owner is certainly dead (a process of this host that is gone), or None if unknown."""
     if w is None or w.hostname != socket.gethostname():
         return None
     if w.stopped_at is not None:
-        return f"worker {worker_id} stopped"
-    if w.pid == os.getpid() and worker_id not in _LOCAL_WORKERS:
-        return f"worker {worker_id} (pid {w.pid}) no longer exists (this process restarted)"
+        return f"{owner} stopped"
+    if w.pid == os.getpid() and owner not in _LOCAL_OWNERS:
+        return f"{owner} (pid {w.pid}) no longer exists (this process restarted)"
     if w.pid != os.getpid() and not _pid_alive(w.pid):
-        return f"worker {worker_id} (pid {w.pid}) is gone"
+        return f"{owner} (pid {w.pid}) is gone"
     return None
 
 
 def recover_stale_jobs(factory: sessionmaker[Session], max_attempts: int) -> list[int]:
-    """Re-queue (or fail, after ``max_attempts``) running jobs whose worker died: its lease
+    """Re-queue (or fail, after ``max_attempts``) running jobs whose owner died: its lease
     expired, or it was a process on this host that no longer exists. Returns their ids."""
     now = utcnow()
     recovered: list[int] = []
@@ -232,29 +299,8 @@ def recover_stale_jobs(factory: sessionmaker[Session], max_attempts: int) -> lis
             owner = s.get(Worker, job.worker_id) if job.worker_id else None
             reason = _owner_gone(owner, job.worker_id)
             if reason is None and job.lease_expires_at is not None and job.lease_expires_at < now:
-                reason = f"worker {job.worker_id} stopped sending heartbeats (lease expired at {job.lease_expires_at.isoformat(timespec='seconds')}Z)"
-            if reason is None:
-                continue
-            res_values: dict[str, Any]
-            if job.cancel_requested:
-                res_values = {"status": CANCELLED, "finished_at": now, "error": "cancelled by request", "message": "cancelled"}
-                note = f"cancelled: {reason} while cancelling"
-            elif job.attempts >= max_attempts:
-                msg = f"{reason} during attempt {job.attempts} of {max_attempts}; not retried"
-                res_values = {"status": FAILED, "finished_at": now, "error": msg, "message": "failed"}
-                note = f"failed: {msg}"
-            else:
-                msg = f"re-queued after attempt {job.attempts} of {max_attempts}: {reason}"
-                res_values = {"status": QUEUED, "message": msg}
-                note = msg
-            res = s.execute(
-                update(Job)
-                .where(Job.id == job.id, Job.status == RUNNING, Job.worker_id == job.worker_id)
-                .values(worker_id=None, lease_expires_at=None, **res_values)
-            )
-            if res.rowcount == 1:
-                _release_lineage(s, job)
-                append_log(s, job.id, note, "WARNING")
+                reason = f"lease expired at {job.lease_expires_at.isoformat(timespec='seconds')}Z ({job.worker_id} stopped renewing it)"
+            if reason is not None and _end_lost_attempt(s, job, reason, max_attempts):
                 recovered.append(job.id)
         # Locks are released with every state change; this only guards against manual edits.
         running_ids = select(Job.id).where(Job.status == RUNNING)

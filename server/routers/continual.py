@@ -14,7 +14,7 @@ from server.deps import DbDep
 from server.errors import not_found
 from server.lookups import current_model
 from server.registry import lineage_chain
-from server.schemas.common import ERROR_RESPONSES
+from server.schemas.common import ERROR_RESPONSES, Name
 from server.schemas.continual import ContinualMetricsOut, StepOut
 
 router = APIRouter(prefix="/metrics", tags=["metrics"], responses=ERROR_RESPONSES)
@@ -23,7 +23,7 @@ router = APIRouter(prefix="/metrics", tags=["metrics"], responses=ERROR_RESPONSE
 @router.get("/continual", response_model=ContinualMetricsOut, summary="R matrix, ACC, A, FWT and BWT over the adaptation history")
 def continual(
     db: DbDep,
-    lineage: Annotated[str | None, Query(max_length=128, description="default: the current model's lineage")] = None,
+    lineage: Annotated[Name | None, Query(description="default: the current model's lineage")] = None,
     split: Annotated[Literal["val", "train", "all"], Query()] = "val",
 ) -> ContinualMetricsOut:
     """Step i is the i-th adaptation of the lineage (a version with an adapted scene), scene j

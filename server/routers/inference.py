@@ -69,17 +69,8 @@ async def predict(
         except CSAInputError as e:
             raise invalid("image", e.problem) from None
 
-    cache = request.app.state.model_cache
-
-    def run() -> np.ndarray:
-        from csa_core.seg import predict_labels
-
-        net, card = cache.get(sha)
-        with cache.inference_lock:
-            return predict_labels(net, rgb, device=cache.device, size=tuple(card.input_size) if card.input_size else None)
-
     from starlette.concurrency import run_in_threadpool
 
-    labels = await run_in_threadpool(run)
+    labels = await run_in_threadpool(request.app.state.model_cache.predict, sha, rgb)
     body = _png(labels.astype(np.uint8)) if format == "ids" else _png(cv2.cvtColor(colorize(labels), cv2.COLOR_RGB2BGR))
     return Response(body, media_type="image/png", headers={"X-CSA-Model-Id": str(version_id), "X-CSA-Model": name})

@@ -11,7 +11,7 @@ from fastapi import APIRouter, Body, Path, Query, status
 from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
-from server.db.models import Job, JobLog
+from server.db.models import MAX_ID, Job, JobLog
 from server.db.session import session_scope
 from server.deps import DbDep, ServicesDep
 from server.errors import APIError, not_available
@@ -23,7 +23,7 @@ from server.schemas.jobs import JobCreate, JobKindOut, JobLogLine, JobLogOut, Jo
 
 _KEEPALIVE_SECONDS = 15.0  # a comment line keeps proxies and clients from timing out
 
-JobId = Annotated[int, Path(ge=1, le=2**62)]
+JobId = Annotated[int, Path(ge=1, le=MAX_ID)]
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], responses=ERROR_RESPONSES)
 
@@ -61,7 +61,7 @@ def create_job(body: Annotated[JobCreate, Body(discriminator="kind")], db: DbDep
 def list_jobs(
     db: DbDep,
     status_: Annotated[JobStatus | None, Query(alias="status")] = None,
-    kind: Annotated[str | None, Query(max_length=32)] = None,
+    kind: Annotated[str | None, Query(max_length=32, pattern=r"^[a-z_]+$")] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> list[JobOut]:
     q = select(Job).order_by(Job.id.desc()).limit(limit)

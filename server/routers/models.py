@@ -8,11 +8,12 @@ import tempfile
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, File, Form, UploadFile, status
+from fastapi import APIRouter, File, Form, Query, UploadFile, status
 from fastapi.responses import FileResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from csa_core.data.camera import parse_size
 from csa_core.errors import CSAInputError
 from server import capabilities
 from server.db.models import Evaluation, ModelVersion, Scene
@@ -52,7 +53,7 @@ def model_out(db: Session, m: ModelVersion) -> ModelOut:
 
 
 @router.get("", response_model=list[ModelOut])
-def list_models(db: DbDep, lineage: str | None = None) -> list[ModelOut]:
+def list_models(db: DbDep, lineage: Annotated[Name | None, Query()] = None) -> list[ModelOut]:
     q = select(ModelVersion).order_by(ModelVersion.id)
     if lineage is not None:
         q = q.where(ModelVersion.lineage == lineage)
@@ -97,8 +98,13 @@ async def register_model(
                 out.write(chunk)
         try:
             card = read_model_card(path)
+            size = card.input_size  # inference runs the network at this size
+            if size is not None:
+                if not (isinstance(size, list) and len(size) == 2 and all(type(v) is int for v in size)):
+                    raise CSAInputError("checkpoint", f"must be [width, height], got {size!r}")
+                parse_size(f"{size[0]}x{size[1]}", "checkpoint")
         except CSAInputError as e:
-            raise invalid("checkpoint", e.problem) from None
+            raise invalid("checkpoint", f"model card input_size: {e.problem}" if e.where == "checkpoint" else e.problem) from None
         model = register_checkpoint(
             db, services.store, path, name=name, lineage=lineage, arch=card.arch, metrics=dict(card.metrics or {}), meta={"task": "upload", "card_created": card.created}, make_current=make_current
         )

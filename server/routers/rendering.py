@@ -33,25 +33,12 @@ def _png(img: np.ndarray) -> str:
     return base64.b64encode(buf.tobytes()).decode("ascii")
 
 
-def _check_pose(rows: list[list[float]]) -> np.ndarray:
-    if len(rows) != 4 or any(len(r) != 4 for r in rows):
-        raise invalid("pose", "must be a 4x4 matrix")
-    pose = np.asarray(rows, dtype=np.float64)
-    if not np.all(np.isfinite(pose)):
-        raise invalid("pose", "must be finite")
-    if not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-4):
-        raise invalid("pose", "last row of a camera-to-world pose must be 0 0 0 1")
-    if abs(np.linalg.det(pose[:3, :3])) < 1e-6:
-        raise invalid("pose", "rotation part is singular")
-    return pose
-
-
 @router.post("/scenes/{scene_ref}/render", response_model=RenderOut, summary="render a view of the scene's NeRF")
 async def render(scene_ref: str, body: RenderRequest, request: Request, db: DbDep, services: ServicesDep) -> RenderOut:
     reason = capabilities.missing_reason("nerf")
     if reason is not None:
         raise not_available(reason)
-    pose = _check_pose(body.pose)
+    pose = np.asarray(body.pose, dtype=np.float64)  # a rigid transform (schemas.common.Pose)
     scene = get_scene(db, scene_ref)
     if body.nerf_id is not None:
         nerf = db.get(NerfCheckpoint, body.nerf_id)
@@ -62,7 +49,7 @@ async def render(scene_ref: str, body: RenderRequest, request: Request, db: DbDe
         if nerf is None:
             raise not_found("NeRF of scene", scene.name)
     if body.intrinsics is not None:
-        intr = Intrinsics(**body.intrinsics.model_dump())
+        intr = body.intrinsics.camera()
     elif scene.intrinsics is not None:
         intr = Intrinsics.from_dict(scene.intrinsics)
     else:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Callable
 from typing import Annotated, Any
 
+import numpy as np
 from pydantic import (
     AfterValidator,
     BaseModel,
@@ -13,9 +15,17 @@ from pydantic import (
     Field,
     StringConstraints,
 )
+from pydantic_core import PydanticCustomError
+
+from csa_core.data.camera import MAX_SIZE_PX, Intrinsics, check_intrinsics, check_pose
+from csa_core.errors import CSAInputError
+from server.db.models import MAX_ID
+
+# A row id in a path, query or body: the database's 32-bit integer ids.
+RowId = Annotated[int, Field(ge=1, le=MAX_ID)]
 
 # A scene or model named by id (digits) or by name.
-Ref = Annotated[str, StringConstraints(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")] | Annotated[int, Field(ge=1, le=2**62)]
+Ref = Annotated[str, StringConstraints(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")] | RowId
 
 # Names contain a non-digit so that they never look like ids (all-digit references are ids).
 Name = Annotated[
@@ -27,6 +37,9 @@ Name = Annotated[
 def _as_utc(value: dt.datetime) -> dt.datetime:
     return value.replace(tzinfo=dt.UTC) if value.tzinfo is None else value.astimezone(dt.UTC)
 
+
+# Free text: anything but NUL characters, which PostgreSQL's text columns cannot hold.
+PlainText = Annotated[str, StringConstraints(pattern=r"^[^\x00]*$")]
 
 # The database keeps naive UTC; answers carry the zone (RFC 3339).
 Timestamp = Annotated[dt.datetime, AfterValidator(_as_utc)]
@@ -53,17 +66,48 @@ class ErrorBody(BaseModel):
     error: ErrorDetail
 
 
+def core_rule(kind: str, check: Callable[[Any], object]) -> AfterValidator:
+    """A validator that applies a csa_core check to a field: the core's :class:`CSAInputError`
+    becomes a validation error of that field (a 422 naming it, see server/errors.py)."""
+
+    def run(value: Any) -> Any:
+        try:
+            check(value)
+        except CSAInputError as e:
+            raise PydanticCustomError(kind, e.problem) from None
+        return value
+
+    return AfterValidator(run)
+
+
+# A camera-to-world pose in a request body, checked by the core's rule for poses
+# (csa_core.data.camera.check_pose): finite, rigid (rotation and translation only), bounded.
+Pose = Annotated[
+    list[Annotated[list[Annotated[float, Field(allow_inf_nan=False)]], Field(min_length=4, max_length=4)]],
+    Field(min_length=4, max_length=4, description="4x4 camera-to-world matrix (rows, metres, OpenCV axes): a rigid transform, last row 0 0 0 1"),
+    core_rule("pose", lambda rows: check_pose(np.asarray(rows, dtype=np.float64), "pose")),
+]
+
+
 class IntrinsicsIn(BaseModel):
-    """Pinhole camera of an image of ``width`` x ``height`` pixels."""
+    """Pinhole camera of an image of ``width`` x ``height`` pixels (requests take :data:`Camera`,
+    which adds the core's rule for cameras, ``csa_core.data.camera.check_intrinsics``)."""
 
     model_config = ConfigDict(extra="forbid")
 
     fx: float = Field(gt=0, allow_inf_nan=False)
     fy: float = Field(gt=0, allow_inf_nan=False)
-    cx: float = Field(allow_inf_nan=False, ge=-1e6, le=1e6)
-    cy: float = Field(allow_inf_nan=False, ge=-1e6, le=1e6)
-    width: int = Field(ge=1, le=8192)
-    height: int = Field(ge=1, le=8192)
+    cx: float = Field(allow_inf_nan=False)
+    cy: float = Field(allow_inf_nan=False)
+    width: int = Field(ge=1, le=MAX_SIZE_PX)
+    height: int = Field(ge=1, le=MAX_SIZE_PX)
+
+    def camera(self) -> Intrinsics:
+        return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+
+
+# A camera in a request body; sane for its image size by the core's rule for cameras.
+Camera = Annotated[IntrinsicsIn, core_rule("intrinsics", lambda intr: check_intrinsics(intr.camera(), "intrinsics"))]
 
 
 class IntrinsicsOut(BaseModel):

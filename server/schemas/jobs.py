@@ -6,9 +6,11 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from server.schemas.common import JsonObject, Name, RecordOut, Ref, Timestamp
+from csa_core.data.camera import parse_size
+from server.schemas.common import JsonObject, Name, RecordOut, Ref, Timestamp, core_rule
 
-Size = Annotated[str, Field(pattern=r"^\d{1,4}x\d{1,4}$", description="WxH, e.g. 160x120")]
+# An image size, checked by the core's parser of sizes (the CLI's rule).
+Size = Annotated[str, Field(pattern=r"^[0-9]{1,4}x[0-9]{1,4}$", description="WxH, e.g. 160x120"), core_rule("size", lambda text: parse_size(text, "size"))]
 
 
 class _Params(BaseModel):
@@ -65,6 +67,7 @@ class AdaptParams(_Params):
     model: Ref | None = Field(default=None, description="selects the lineage (default: the current model's); the job adapts that lineage's newest version when it starts")
     preset: str = Field(default="cpu", max_length=32, description="adaptation preset of csa_core.adapt: paper, cpu or tiny")
     mode: Literal["joint", "ni_nl", "gi_nl"] | None = Field(default=None, description="default: the preset's (joint training)")
+    seed: int = Field(default=0, ge=0, le=2**31 - 1, description="seed of every random step (NeRF, fine-tuning, replay), as csa adapt --seed")
     make_current: bool = True
 
 

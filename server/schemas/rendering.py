@@ -1,10 +1,10 @@
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from server.schemas.common import IntrinsicsIn
+from server.schemas.common import Camera, Pose, RowId
 
 Channel = Literal["color", "depth", "labels", "labels_color"]
 
@@ -14,10 +14,10 @@ class RenderRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    pose: list[Annotated[list[float], Field(min_length=4, max_length=4)]] = Field(min_length=4, max_length=4, description="4x4 camera-to-world matrix (rows)")
-    intrinsics: IntrinsicsIn | None = Field(default=None, description="default: the scene's camera")
+    pose: Pose
+    intrinsics: Camera | None = Field(default=None, description="default: the scene's camera")
     channels: list[Channel] = Field(default_factory=lambda: ["color", "depth", "labels"], min_length=1, max_length=4)
-    nerf_id: int | None = Field(default=None, ge=1, description="default: the scene's active NeRF")
+    nerf_id: RowId | None = Field(default=None, description="default: the scene's active NeRF")
 
 
 class RenderOut(BaseModel):

@@ -2,14 +2,14 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from server.schemas.common import IntrinsicsOut, Name, Timestamp
+from server.schemas.common import IntrinsicsOut, Name, PlainText, Timestamp
 
 
 class SceneCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     name: Name
-    description: str = Field(default="", max_length=2000)
+    description: PlainText = Field(default="", max_length=2000)
 
 
 class SceneOut(BaseModel):

@@ -8,10 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from csa_core.adapt.baselines.cotta import module_bytes
+from csa_core.adapt.baselines.cotta import CoTTA, module_bytes
 from csa_core.adapt.continual import run_continual
+from csa_core.adapt.finetune import apply_adabn
+from csa_core.adapt.step import ContinualState, continual_step
 from csa_core.errors import CSAInputError
 from csa_core.eval.continual import continual_metrics
+from csa_core.seg.adabn import batchnorm_layers
 from csa_core.seg.checkpoint import load_checkpoint
 from csa_core.seg.predict import evaluate_scene
 from tests.adapt.conftest import tiny_config
@@ -80,3 +83,51 @@ def test_unknown_method_is_an_input_error(pretrained, target_scenes, tmp_path):
     with pytest.raises(CSAInputError, match="unknown method 'magic'"):
         run_continual(pretrained, target_scenes[:1], tiny_config(), tmp_path, method="magic")
     assert not (tmp_path / "results.json").exists()
+
+
+def _bn(model: torch.nn.Module) -> list[torch.Tensor]:
+    return [t.clone() for bn in batchnorm_layers(model) for t in (bn.running_mean, bn.running_var)]
+
+
+@pytest.mark.parametrize("placement", ["paper", "ours"])
+def test_cotta_honours_adabn_like_every_method(placement, pretrained, target_scenes, monkeypatch):
+    """With AdaBN the teacher (the reported network) ends the step with statistics of the
+    scene's camera images, and where the placement puts AdaBN before the network labels a
+    scene, the online pass runs with them too; without AdaBN CoTTA keeps the source's."""
+    scene = target_scenes[0]
+    camera = [f.color for f in scene.train_frames]
+    during: list[list[torch.Tensor]] = []
+    original = CoTTA.adapt
+
+    def adapt(self, frames):
+        during.append(_bn(self.teacher) + _bn(self.student))
+        return original(self, frames)
+
+    monkeypatch.setattr(CoTTA, "adapt", adapt)
+    source = _bn(pretrained)
+    adapted_source = copy.deepcopy(pretrained)
+    apply_adabn(adapted_source, camera, seed=0)
+    for adabn in (True, False):
+        during.clear()
+        config = tiny_config()
+        config.adabn, config.adabn_placement = adabn, placement
+        model = copy.deepcopy(pretrained)
+        state = ContinualState.start(config, "cotta")
+        record = continual_step(state, model, scene)
+        teacher = state.method.reported(model)
+        (seen,) = during
+        if adabn and placement == "ours":
+            expected = _bn(adapted_source)
+            assert all(torch.allclose(a, b) for a, b in zip(seen, expected + expected, strict=True))
+        else:
+            assert all(torch.equal(a, b) for a, b in zip(seen, source + source, strict=True))
+        if adabn:
+            reference = copy.deepcopy(teacher)
+            apply_adabn(reference, camera, seed=0)
+            assert all(
+                torch.allclose(a, b) for a, b in zip(_bn(teacher), _bn(reference), strict=True)
+            )
+            assert record["batchnorm_pooled"] == [scene.name]  # pooled like the others
+        else:
+            assert all(torch.equal(a, b) for a, b in zip(_bn(teacher), source, strict=True))
+            assert record["batchnorm_pooled"] is None

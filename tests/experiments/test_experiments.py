@@ -130,6 +130,50 @@ def test_multi_step_fills_r_for_every_method(workspace, tmp_path, capsys):
         assert label in stdout
 
 
+def test_multi_step_runs_every_method_with_and_without_adabn(workspace, tmp_path, capsys):
+    methods = ["cotta", "finetune"]
+    argv = common(workspace, tmp_path, "multi-step", "--methods", ",".join(methods))
+    code, stdout, _ = csa(capsys, *argv, "--adabn", "both")
+    assert code == 0
+    entry = experiment_entry(tmp_path, "multi-step")
+    assert entry["inputs"]["adabn"] == "both"
+    assert [(r["method"], r["adabn"]) for r in entry["runs"]] == [
+        (m, a) for m in methods for a in (True, False)
+    ]
+    for run in entry["runs"]:
+        results = json.loads(Path(run["results"]).read_text())
+        assert results["config"]["adabn"] is run["adabn"]
+        assert Path(run["results"]).parent.name == "seed0"
+        assert Path(run["results"]).parent.parent.name == f"adabn-{'on' if run['adabn'] else 'off'}"
+        # BatchNorm statistics are pooled only where AdaBN re-estimated them.
+        pooled = [s["batchnorm_pooled"] for s in results["steps"]]
+        assert pooled == (
+            [["office_0"], ["office_0", "office_1"]] if run["adabn"] else [None, None]
+        )
+    for method in methods:
+        on, off = (
+            np.array(
+                next(r for r in entry["runs"] if (r["method"], r["adabn"]) == (method, a))["R"]
+            )
+            for a in (True, False)
+        )
+        assert not np.allclose(on, off)  # AdaBN changes every method's scores, CoTTA's too
+    rows = read_csv(tmp_path / "multi-step.csv")
+    assert [(r["method"], r["adabn"]) for r in rows[::2]] == [
+        (m, a) for m in methods for a in ("on", "off")
+    ]
+    metrics = read_csv(tmp_path / "multi-step-metrics.csv")
+    assert [(m["method"], m["adabn"]) for m in metrics] == [
+        (m, a) for m in methods for a in ("on", "off")
+    ]
+    for label in (
+        "| CoTTA, with AdaBN | Adapt |",
+        "| CoTTA, without AdaBN | Previous |",
+        "| fine-tune (no replay), without AdaBN | Adapt |",
+    ):
+        assert label in stdout
+
+
 def test_footprint_per_method_and_scene_count(workspace, tmp_path, capsys):
     code, stdout, _ = csa(
         capsys, *common(workspace, tmp_path, "footprint", "--pretrain-scenes", workspace.pretrain)

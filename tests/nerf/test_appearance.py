@@ -28,7 +28,10 @@ def log_gain_by_exposure(nerf, scene) -> list[float]:
     """Mean log-gain of the colour corrections of the training frames of each exposure."""
     gain = nerf.appearance.centered()[:, :3].mean(dim=1).detach()
     train = len(scene.train_frames)
-    return [float(gain[[i for i in range(train) if i % len(GAINS) == k]].mean()) for k in range(len(GAINS))]
+    return [
+        float(gain[[i for i in range(train) if i % len(GAINS) == k]].mean())
+        for k in range(len(GAINS))
+    ]
 
 
 def fit_with_corrections(scene, steps=150):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from csa_core.nerf.config import HashEncodingConfig
@@ -39,7 +40,9 @@ def _reference_encoding(enc: HashEncoding, x: torch.Tensor) -> torch.Tensor:
     return torch.cat(feats, dim=1)
 
 
-def _random_table_encoding(num_levels: int, log2_table_size: int, base: int, finest: int) -> HashEncoding:
+def _random_table_encoding(
+    num_levels: int, log2_table_size: int, base: int, finest: int
+) -> HashEncoding:
     """An encoding with 2 features per level whose table is filled with N(0, 1) values (the
     default initialisation is too small to tell rows apart)."""
     cfg = HashEncodingConfig(
@@ -99,7 +102,11 @@ def test_inference_blocks_give_the_same_features(monkeypatch):
     from csa_core.nerf import hash_encoding
 
     cfg = HashEncodingConfig(
-        num_levels=5, features_per_level=2, log2_table_size=11, base_resolution=4, finest_resolution=96
+        num_levels=5,
+        features_per_level=2,
+        log2_table_size=11,
+        base_resolution=4,
+        finest_resolution=96,
     )
     enc = HashEncoding(cfg, generator=torch.Generator().manual_seed(0))
     extra = torch.randn(enc.level_rows(3), 3, generator=torch.Generator().manual_seed(6))
@@ -112,3 +119,37 @@ def test_inference_blocks_give_the_same_features(monkeypatch):
     assert torch.equal(blocked, whole.detach())
     assert torch.equal(blocked_extra, whole_extra)
     assert torch.equal(alone, whole.detach())
+
+
+def test_corners_of_the_first_levels_are_those_of_all_levels():
+    """The renderer finds the corners of the semantic levels alone; they must be the first
+    levels' corners of the full computation (dense and hashed levels alike)."""
+    cfg = HashEncodingConfig(
+        num_levels=6, log2_table_size=10, base_resolution=4, finest_resolution=96
+    )
+    enc = HashEncoding(cfg, generator=torch.Generator().manual_seed(0))
+    x = torch.rand(300, 3, generator=torch.Generator().manual_seed(1))
+    rows, weights = enc.corners(x)
+    for levels in (1, 3, 6):
+        r, w = enc.corners(x, levels)
+        assert torch.equal(r, rows[:levels]) and torch.equal(w, weights[:levels])
+    assert 0 < enc._num_dense < 6  # both kinds of level are covered
+
+
+@pytest.mark.slow
+def test_compiled_corners_agree_with_the_eager_reference():
+    """``HashEncodingConfig.compile`` runs the corner computation through torch.compile (tens of
+    seconds to compile on a CPU, hence slow); it must give the eager rows and weights exactly."""
+    cfg = HashEncodingConfig(
+        num_levels=6, log2_table_size=10, base_resolution=4, finest_resolution=96
+    )
+    cfg.compile = True
+    enc = HashEncoding(cfg, generator=torch.Generator().manual_seed(0))
+    for n in (300, 1000):  # two sizes: one compiled graph with dynamic shapes
+        x = torch.rand(n, 3, generator=torch.Generator().manual_seed(n))
+        rows, weights = enc.corners(x)
+        ref_rows, ref_weights = enc.corners_eager(x)
+        assert torch.equal(rows, ref_rows)
+        torch.testing.assert_close(weights, ref_weights, atol=1e-7, rtol=0)
+        r, w = enc.corners(x, 3)
+        assert torch.equal(r, ref_rows[:3])

@@ -140,3 +140,76 @@ def test_cli_fit_render_info(tiny_scene, tmp_path, monkeypatch, capsys):
         _cli(
             ["nerf", "render", str(ckpt), "--views", "all", "--out", str(tmp_path / "x"), "--quiet"]
         )
+
+
+def test_pruned_inference_agrees_with_the_full_composite(tiny_nerf, tiny_scene):
+    """The renderer evaluates colour and semantics only where a sample carries weight; its
+    output must match compositing every sample (the reference) within a small tolerance."""
+    import torch
+
+    from csa_core.nerf.rays import image_rays
+
+    f = tiny_scene.train_frames[2]
+    origins, dirs = image_rays(tiny_scene.intrinsics, f.pose)
+    depth = torch.as_tensor(f.depth.reshape(-1))
+    for sampler, d in [
+        (tiny_nerf.make_sampler("depth"), depth),
+        (tiny_nerf.render_sampler(with_depth=False), None),
+    ]:
+        with torch.inference_mode():
+            samples = tiny_nerf.sample(origins, dirs, sampler, depth=d)
+            full = tiny_nerf.render_samples(origins, dirs, samples)
+            fast = tiny_nerf.render_samples_pruned(origins, dirs, samples)
+        for key in ("depth", "opacity", "rgb", "semantics"):
+            torch.testing.assert_close(fast[key], full[key], atol=5e-3, rtol=0)
+        assert torch.equal(fast["semantics"].argmax(-1), full["semantics"].argmax(-1))
+
+
+def test_views_rendered_together_equal_views_rendered_alone(tiny_nerf, tiny_scene):
+    from csa_core.nerf.render import render_frames, render_image
+
+    frames = tiny_scene.train_frames[:4]
+    poses = [(f.name, f.pose) for f in frames]
+    depths = [f.depth if i % 2 else None for i, f in enumerate(frames)]  # mixed batches
+    together = render_frames(tiny_nerf, poses, tiny_scene.intrinsics, depths, rays_per_pass=4096)
+    for (name, pose), depth, view in zip(poses, depths, together, strict=True):
+        alone = render_image(tiny_nerf, pose, tiny_scene.intrinsics, name=name, depth=depth)
+        assert view.name == name
+        np.testing.assert_allclose(view.depth, alone.depth, atol=1e-5)
+        assert np.array_equal(view.labels, alone.labels)
+        assert np.abs(view.color.astype(int) - alone.color).max() <= 1
+
+
+def test_labels_only_rendering_skips_colour_and_keeps_the_labels(tiny_nerf, tiny_scene):
+    from csa_core.nerf.render import render_pseudo_labels
+
+    labels = render_pseudo_labels(tiny_nerf, tiny_scene, "train")
+    full = render_views(tiny_nerf, tiny_scene, "train")
+    assert [v.name for v in full] == list(labels)
+    for v in full:
+        assert np.array_equal(labels[v.name], v.labels)
+
+
+def test_the_preset_decides_whether_views_with_depth_render_depth_guided(tiny_scene):
+    """Views with depth render in the depth band when the config says so (fast), with the
+    config's own sampler otherwise (reference): never by the caller's choice."""
+    from csa_core.adapt.pseudo_labels import render_at_frames
+    from csa_core.nerf.fit import fit_semantic_nerf
+
+    frames = tiny_scene.train_frames[:2]
+    cfg = tiny_config(steps=30)
+    nerf = fit_semantic_nerf(tiny_scene, "label-nyu40", cfg, progress=False)[0]
+    calls = []
+    real = nerf.sample
+
+    def spy(origins, dirs, sampler, **kw):
+        calls.append(type(sampler).__name__)
+        return real(origins, dirs, sampler, **kw)
+
+    nerf.sample = spy
+    render_at_frames(nerf, frames, tiny_scene.intrinsics)
+    assert set(calls) == {"DepthGuidedSampler"}
+    calls.clear()
+    nerf.config.sampler.render_depth_guided = False
+    render_at_frames(nerf, frames, tiny_scene.intrinsics)
+    assert set(calls) == {"OccupancySampler"}

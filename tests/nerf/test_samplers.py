@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from csa_core.nerf.normalization import SceneBox
 from csa_core.nerf.rendering import RaySamples, accumulate_along_rays, render_weights
 from csa_core.nerf.samplers import (
+    DepthGuidedSampler,
     OccupancyGrid,
+    OccupancySampler,
+    ReferenceSampler,
+    UniformSampler,
     sample_depth_guided,
     sample_reference,
     sample_uniform,
@@ -126,3 +131,109 @@ def test_occupancy_grid_marks_points_and_stratifies_deterministically():
         BOX, o, d, t_near, t_far, stratified=True, generator=torch.Generator().manual_seed(3)
     )
     assert torch.equal(a.t_starts, b.t_starts) and len(a) > 0
+
+
+# -- sampler objects ---------------------------------------------------------------------------
+
+
+class _CountingDensity:
+    """The sphere's density, counting the points it was asked for."""
+
+    def __init__(self):
+        self.points = 0
+
+    def __call__(self, points: torch.Tensor) -> torch.Tensor:
+        self.points += points.shape[0]
+        return _sphere_density(points)
+
+
+def test_occupancy_sampler_owns_its_grid_update_schedule():
+    grid = OccupancyGrid(resolution=16, threshold=0.01, march_steps=128)
+    sampler = OccupancySampler(
+        grid, BOX, max_samples=None, update_every=4, ema_decay=0.0, prune=False
+    )
+    density = _CountingDensity()
+    g = torch.Generator().manual_seed(0)
+    cells = 16**3
+    counts = []
+    for step in range(9):
+        before = density.points
+        sampler.update_every_n_steps(step, density, generator=g)
+        counts.append(density.points - before)
+    # Step 0: every cell; steps 4 and 8: a random quarter of the cells; nothing in between.
+    assert counts == [cells, 0, 0, 0, cells // 4, 0, 0, 0, cells // 4]
+    # The grid it updated (no memory of the initial estimate) knows the sphere: cells far from
+    # it are empty.
+    assert 0 < float(grid.occupied.float().mean()) < 0.2
+    o, d, _, disc = _rays(8)
+    t_near, t_far = BOX.ray_interval(o, d, near=0.05)
+    s = sampler.sampling(o, d, t_near, t_far, density_fn=density)
+    per_ray = torch.bincount(s.ray_indices, minlength=o.shape[0])
+    assert torch.all(per_ray[disc > 0.05] > 0)
+    grid.occupied.fill_(True)
+    assert len(s) < 0.3 * len(sampler.sampling(o, d, t_near, t_far))  # empty space skipped
+
+
+def test_depth_guided_sampler_sends_rays_without_depth_to_its_fallback():
+    o, d, t_true, disc = _rays(8)
+    t_near, t_far = BOX.ray_interval(o, d, near=0.05)
+    depth = torch.where(disc > 0.05, t_true, torch.zeros_like(t_true))
+    fallback = UniformSampler(32)
+    sampler = DepthGuidedSampler(4, 0, band=0.05, fallback=fallback)
+    s = sampler.sampling(o, d, t_near, t_far, depth=depth)
+    per_ray = torch.bincount(s.ray_indices, minlength=o.shape[0])
+    has = depth > 0
+    assert torch.all(per_ray[has] == 4) and torch.all(per_ray[~has] == 32)
+    # Packed layout: rays in order, each ray's samples sorted along it.
+    assert torch.all(s.ray_indices[1:] >= s.ray_indices[:-1])
+    same_ray = s.ray_indices[1:] == s.ray_indices[:-1]
+    assert torch.all(s.t_starts[1:][same_ray] >= s.t_starts[:-1][same_ray])
+    # Band samples stay inside depth +- band.
+    band = has[s.ray_indices]
+    assert torch.all((s.t_mids[band] - depth[s.ray_indices][band]).abs() <= 0.05 + 1e-5)
+    # Training layout without a fallback: every ray gets band + spread samples (dense).
+    train = DepthGuidedSampler(6, 4, band=0.1)
+    t = train.sampling(o, d, t_near, t_far, depth=depth, stratified=True)
+    assert t.per_ray == 10 and len(t) == 10 * o.shape[0]
+    with pytest.raises(ValueError, match="fallback"):
+        DepthGuidedSampler(4, 0, band=0.05).sampling(o, d, t_near, t_far, depth=depth)
+
+
+def test_reference_sampler_object_needs_the_density():
+    o, d, _, _ = _rays(2)
+    t_near, t_far = BOX.ray_interval(o, d, near=0.05)
+    s = ReferenceSampler(16, 16).sampling(o, d, t_near, t_far, density_fn=_sphere_density)
+    assert s.per_ray == 32
+    with pytest.raises(ValueError, match="density_fn"):
+        ReferenceSampler(16, 16).sampling(o, d, t_near, t_far)
+
+
+def test_depth_guided_rendering_matches_the_full_march_where_depth_is_exact():
+    """Band-only samples around exact depth (few per ray) render the same depth, opacity and
+    per-sample values (here: which half of the sphere) as the pruned occupancy march."""
+    o, d, t_true, disc = _rays(24)
+    t_near, t_far = BOX.ray_interval(o, d, near=0.05)
+    grid = OccupancyGrid(resolution=64, threshold=0.01, march_steps=1024)
+    march = OccupancySampler(grid, BOX, max_samples=None, update_every=1)
+    march.update_every_n_steps(0, _sphere_density, generator=torch.Generator().manual_seed(0))
+    inside = disc > 0.05
+    depth = torch.where(inside, t_true, torch.zeros_like(t_true))  # no depth off the sphere
+    guided = DepthGuidedSampler(8, 0, band=0.05, band_fraction=0.01, fallback=march)
+    results = {}
+    for name, sampler in {"march": march, "guided": guided}.items():
+        s = sampler.sampling(o, d, t_near, t_far, depth=depth, density_fn=_sphere_density)
+        pts = o[s.ray_indices] + d[s.ray_indices] * s.t_mids[:, None]
+        w, _, _ = render_weights(_sphere_density(pts), s, d.norm(dim=-1))
+        halves = torch.stack([(pts[:, 0] < 0).float(), (pts[:, 0] >= 0).float()], dim=-1)
+        results[name] = (
+            accumulate_along_rays(w, s.t_mids[:, None], s).squeeze(-1),
+            accumulate_along_rays(w, None, s).squeeze(-1),
+            accumulate_along_rays(w, halves, s),
+            len(s),
+        )
+    (dm, om, hm, nm), (dg, og, hg, ng) = results["march"], results["guided"]
+    torch.testing.assert_close(og, om, atol=0.02, rtol=0)
+    assert float((dg - dm)[inside].abs().max()) < 0.01
+    assert float((dg - t_true)[inside].abs().max()) < 0.01
+    torch.testing.assert_close(hg, hm, atol=0.02, rtol=0)
+    assert ng < nm  # and with fewer samples

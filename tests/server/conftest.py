@@ -1,5 +1,11 @@
-"""Fixtures of the service tests: real uvicorn servers on 127.0.0.1 with a temporary SQLite
-database and artifact folder, a client, and tiny synthetic scene folders."""
+"""Fixtures of the service tests: real uvicorn servers on 127.0.0.1 with a temporary database
+and artifact folder, a client, and tiny synthetic scene folders.
+
+Tests that touch the database run on both backends with ``pytestmark = both_backends``: a
+SQLite file in the test's folder, and a fresh database on a real PostgreSQL server
+(``tests/pg.py``). Without a PostgreSQL server those runs fail under CI (``CI=true``) and are
+skipped elsewhere.
+"""
 
 from __future__ import annotations
 
@@ -16,9 +22,42 @@ import uvicorn
 from client import CSAClient
 from server.app import create_app
 from server.settings import Settings
+from tests.pg import PostgresDatabases, PostgresUnavailable, in_ci, open_postgres
 
 API_KEY = "test-key-0123456789"
 SCENE_SIZE = (40, 30)
+BACKENDS = ("sqlite", "postgresql")
+
+# The module's tests run once per backend, each with its own server or services.
+both_backends = pytest.mark.parametrize("db_backend", BACKENDS, indirect=True, scope="module")
+
+
+@pytest.fixture(scope="session")
+def postgres() -> Iterator[PostgresDatabases]:
+    """The PostgreSQL server of this test run (see tests/pg.py); its databases are dropped at the end."""
+    try:
+        databases = open_postgres()
+    except PostgresUnavailable as e:
+        if in_ci():
+            pytest.fail(f"PostgreSQL is required in CI: {e}", pytrace=False)
+        pytest.skip(f"no PostgreSQL server: {e}")
+    yield databases
+    databases.close()
+
+
+@pytest.fixture(scope="session")
+def db_backend(request) -> str:
+    """``sqlite`` unless a module parametrizes it (``both_backends``)."""
+    return getattr(request, "param", "sqlite")
+
+
+def database_url(request: pytest.FixtureRequest, backend: str) -> str | None:
+    """A new empty database of ``backend``; None for SQLite (a file in the settings' data folder)."""
+    if backend == "sqlite":
+        return None
+    if backend == "postgresql":
+        return request.getfixturevalue("postgres").create()
+    raise ValueError(f"unknown database backend {backend!r}")
 
 
 def free_port() -> int:

@@ -1,5 +1,6 @@
 """The service end to end: a real uvicorn server on 127.0.0.1 with its embedded worker, a
-temporary SQLite database and artifact folder, driven through ``CSAClient`` and ``csa-client``.
+temporary database (SQLite, then PostgreSQL) and artifact folder, driven through ``CSAClient``
+and ``csa-client``.
 
 Scenes are tiny procedural rooms (8 frames of 40x30); jobs use tiny settings so the whole
 flow runs in well under a minute on a 2-core CPU.
@@ -20,7 +21,17 @@ import pytest
 from client import CSAClient, NotAvailable
 from client.cli import main as cli_main
 from server import capabilities
-from tests.server.conftest import API_KEY, SCENE_SIZE, LiveServer, start_server, test_settings
+from tests.server.conftest import (
+    API_KEY,
+    SCENE_SIZE,
+    LiveServer,
+    both_backends,
+    database_url,
+    start_server,
+    test_settings,
+)
+
+pytestmark = both_backends
 
 # A NeRF fit small enough for a test: few rays and steps, a small table and occupancy grid.
 TINY_NERF = {"steps": 60, "rays_per_step": 256, "occupancy_resolution": 32, "log2_table_size": 12}
@@ -44,13 +55,13 @@ class Service:
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory) -> Iterator[Service]:
+def service(request, tmp_path_factory, db_backend: str) -> Iterator[Service]:
     from csa_core.data.synth import synthesize
 
     data = tmp_path_factory.mktemp("e2e")
     (pre,) = synthesize(data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="apartment", seed=1)
     (target,) = synthesize(data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=2)
-    live = start_server(test_settings(data / "service"))
+    live = start_server(test_settings(data / "service", database_url=database_url(request, db_backend)))
     with live.client() as client:
         deadline = time.monotonic() + 10
         while client.health().workers_alive < 1 and time.monotonic() < deadline:

@@ -29,7 +29,7 @@ from csa_core.device import resolve_device
 from csa_core.seg.predict import as_image_list
 from csa_core.seg.transforms import image_to_tensor, to_float_image
 
-# DESIGN.md "Baselines" (CoTTA): lr 2.5e-6, EMA 0.999, confidence gate 0.69, restore p = 0.01.
+# docs/method.md "Baselines" (CoTTA): lr 2.5e-6, EMA 0.999, confidence gate 0.69, restore p = 0.01.
 PAPER_LR = 2.5e-6
 PAPER_EMA_MOMENTUM = 0.999
 PAPER_CONFIDENCE_THRESHOLD = 0.69
@@ -41,7 +41,7 @@ CPU_SCALES = (0.75, 1.0, 1.5)  # ours: a quarter of the teacher passes, for CPU 
 
 @dataclass(frozen=True)
 class CoTTAConfig:
-    """CoTTA's settings; defaults are the paper's (DESIGN.md, "Baselines")."""
+    """CoTTA's settings; defaults are the paper's (docs/method.md, "Baselines")."""
 
     lr: float = PAPER_LR
     betas: tuple[float, float] = (0.9, 0.999)  # Adam's defaults, as in CoTTA

@@ -3,7 +3,7 @@ read pseudo-labels back at each training view, fine-tune on camera images + map 
 
 Unlike the NeRF, the map cannot render new images, so replaying an old scene means keeping its
 training images and map labels explicitly; :class:`MappingMemory` holds them and its size is
-the Mapping row of the memory-footprint table (DESIGN.md, "Protocols and metrics").
+the Mapping row of the memory-footprint table (docs/method.md, "Protocols and metrics").
 """
 
 from __future__ import annotations
@@ -76,17 +76,27 @@ def build_voxel_map(
     return voxel_map
 
 
+READ_BACKS = ("raycast", "depth")
+
+
 def render_map_labels(
-    voxel_map: VoxelSemanticMap, scene: Scene, names: Sequence[str]
+    voxel_map: VoxelSemanticMap, scene: Scene, names: Sequence[str], read: str = "raycast"
 ) -> dict[str, np.ndarray]:
-    """Pseudo-labels of the named frames read from the map with each frame's pose and depth
-    (0 where a pixel has no depth or its voxel is empty)."""
+    """Pseudo-labels of the named frames read from the map. ``read="raycast"`` (Frey et al.):
+    each pixel's ray is cast from the frame's pose (:meth:`VoxelSemanticMap.raycast`), 0 only
+    where it meets no labelled voxel, so pixels the sensor missed are labelled too.
+    ``read="depth"``: the voxel at each pixel's own measured surface point, 0 where the frame
+    has no depth (the older read-back, kept for comparison)."""
+    if read not in READ_BACKS:
+        raise ValueError(f"render_map_labels: read must be one of {READ_BACKS}, got {read!r}")
     out: dict[str, np.ndarray] = {}
     for frame in _frames_by_name(scene, names):
-        if frame.depth is None:
+        if read == "raycast":
+            out[frame.name] = voxel_map.labels_for_pose(frame.pose, scene.intrinsics)
+        elif frame.depth is None:
             out[frame.name] = np.zeros(frame.color.shape[:2], dtype=np.uint8)
         else:
-            out[frame.name] = voxel_map.labels_for_view(frame.depth, frame.pose, scene.intrinsics)
+            out[frame.name] = voxel_map.labels_at_depth(frame.depth, frame.pose, scene.intrinsics)
     return out
 
 
@@ -162,7 +172,7 @@ class MappingMemory:
 def mapping_replay_buffer(memories: Sequence[MappingMemory], size: int) -> ReplayBuffer:
     """A replay buffer of ``size`` stored pairs from earlier scenes, split and picked by the
     same rule as the NeRF replay (equal shares, views evenly spaced along each trajectory),
-    so Mapping and CSA see the same batch composition (DESIGN.md fixes ``size`` at 100)."""
+    so Mapping and CSA see the same batch composition (docs/method.md "Remember" fixes ``size`` at 100)."""
     from csa_core.adapt.replay import ReplayBuffer, evenly_spaced, split_buffer
 
     buffer = ReplayBuffer()

@@ -1,44 +1,89 @@
-"""A sparse voxel map of per-voxel class scores: the 3D fusion behind the Mapping baseline.
+"""A sparse voxel map for the Mapping baseline: a truncated signed distance field (TSDF) for
+the geometry and per-voxel class scores for the semantics (docs/method.md, "Baselines").
 
-Each frame's labels (or class probabilities) are lifted to 3D with its depth and pose and
-added to the scores of the voxel each surface point falls in. Reading the map back for a view
-looks up, for every pixel with depth, the voxel of its back-projected surface point and takes
-the class with the highest score. Everything is vectorised over pixels: voxels are integer
-cells packed into one int64 key, kept sorted so lookups are binary searches.
+Each frame is fused into one grid of cells, as the voxblox-style semantic map of Frey et al.
+(RA-L 2022) does:
+
+- **geometry**: a projective TSDF. Every voxel near a measured surface point along the
+  pixel's ray (within ``truncation`` voxels) takes the distance, along the ray through its
+  centre, from the centre to the surface the frame measured there (depth interpolated
+  between neighbouring pixels of one surface), clipped at the truncation and averaged over
+  frames, one unit of weight per observation. Voxels farther than the truncation behind the
+  surface are left alone (the frame cannot see them).
+- **semantics**: each pixel's label (or class probabilities) is added to the scores of the
+  voxel its surface point falls in.
+
+Reading the map for a view casts every pixel's ray through the TSDF: the ray stops where the
+trilinearly interpolated distance first turns from positive to non-positive (the surface,
+located by linear interpolation between samples half a voxel apart) and takes the class of the
+voxel holding that point (or the summed scores of its neighbours within ``search_radius``
+cells when it has none). A pixel is unknown only where its ray meets no surface. The view's
+own depth is not used, so a pixel the sensor missed still gets the label the map knows.
+
+Everything is vectorised over pixels: voxels are integer cells packed into one int64 key,
+kept sorted; a ray march skips empty space by an exact voxel traversal to the first cell next
+to one with a non-positive distance, on a dense grid over the map's bounding box.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from csa_core.data.camera import Intrinsics, backproject
+from csa_core.data.camera import Intrinsics, backproject, pixel_rays
 from csa_core.data.nyu40 import NUM_CLASSES, UNKNOWN
 
-# Frey et al. (RA-L 2022) fuse predictions at 5 cm (DESIGN.md, "Baselines").
+# Frey et al. (RA-L 2022) fuse predictions at 5 cm (docs/method.md, "Baselines").
 PAPER_VOXEL_SIZE = 0.05
 
 _BITS = 21  # per axis: +-2^20 cells, +-52 km at 5 cm
 _OFFSET = 1 << (_BITS - 1)
 _MASK = (1 << _BITS) - 1
+# Dense lookup grids up to this many cells (float32 distances: 256 MB); larger maps look cells
+# up in their sorted keys instead (same result, slower).
+MAX_DENSE_CELLS = 1 << 26
+# Ray march: the traversal walks coarse cells of _COARSE^3 voxels, _WINDOW_CELLS at a time,
+# to skip empty space; near a surface the TSDF is sampled every half voxel, _SURFACE_SAMPLES
+# samples at a time, before the traversal resumes.
+_WINDOW_CELLS = 4
+_COARSE = 4
+_SURFACE_SAMPLES = 8
+_RAY_CHUNK = 1 << 15  # rays marched together (bounds the march's memory to some 100 MB)
+_PIXEL_CHUNK = 1 << 15  # pixels whose truncation bands are gathered together when fusing
 
 
 @dataclass(frozen=True)
 class VoxelMapConfig:
-    """Voxel edge in metres; ``search_radius``: when a pixel's own voxel holds no score (a
-    view that was not fused, or a surface only ever labelled unknown), sum the scores of the
-    voxels up to this many cells away (0: no search, the pixel stays unknown)."""
+    """``voxel_size``: voxel edge in metres. ``truncation``: the TSDF's truncation distance,
+    in voxels (3: the band of voxels a frame updates reaches 15 cm either side of its surface
+    at 5 cm). ``search_radius``: a ray whose surface point lies in a voxel without scores
+    takes the summed scores of the voxels within this many cells (0: it stays unknown); the
+    depth read-back (:meth:`VoxelSemanticMap.labels_at_depth`) does the same. ``max_range``:
+    how far (metres along the ray) a pixel's ray is followed through the map."""
 
     voxel_size: float = PAPER_VOXEL_SIZE
-    search_radius: int = 0
+    truncation: float = 3.0
+    search_radius: int = 1
     num_classes: int = NUM_CLASSES
+    max_range: float = 10.0
+    geometry_subdivision: int = 1
+    truncation_in_geometry: bool = False
+    behind: float = 0.0
+    dropoff: bool = False
 
     def __post_init__(self) -> None:
         if not self.voxel_size > 0:
             raise ValueError(f"VoxelMapConfig: voxel_size must be > 0, got {self.voxel_size}")
+        if not self.truncation >= 1:
+            raise ValueError(
+                f"VoxelMapConfig: truncation must be >= 1 voxel, got {self.truncation}"
+            )
         if self.search_radius < 0 or self.num_classes < 1:
             raise ValueError("VoxelMapConfig: search_radius must be >= 0 and num_classes >= 1")
+        if not self.max_range > 0:
+            raise ValueError(f"VoxelMapConfig: max_range must be > 0, got {self.max_range}")
 
 
 def voxel_coords(points: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -63,42 +108,70 @@ def unpack_keys(keys: np.ndarray) -> np.ndarray:
     return cells - _OFFSET
 
 
-class VoxelSemanticMap:
-    """Sparse voxels with summed class scores: ``keys`` (N,) sorted int64, ``scores`` (N, C).
+def _rows_of(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Row of each key in ``sorted_keys``, or -1 where it is absent."""
+    if sorted_keys.size == 0:
+        return np.full(keys.shape, -1, dtype=np.int64)
+    rows = np.minimum(np.searchsorted(sorted_keys, keys), sorted_keys.size - 1)
+    return np.where(sorted_keys[rows] == keys, rows, -1)
 
-    Column ``k`` of ``scores`` belongs to NYU40 id ``k + 1``. Label maps add one vote per
-    pixel; probability maps add the pixel's probabilities.
+
+class VoxelSemanticMap:
+    """Two sparse layers over one grid of cells.
+
+    Semantics: ``keys`` (N,) sorted int64 and summed class scores ``scores`` (N, C) of the
+    voxels surface points fell in; column ``k`` belongs to NYU40 id ``k + 1``. Label maps add
+    one vote per pixel; probability maps add the pixel's probabilities.
+    Geometry: ``tsdf_keys`` (M,) sorted int64, the truncated signed distance ``tsdf`` (M,)
+    in metres (positive in front of the surface) and its summed observation ``weights`` (M,).
     """
 
     def __init__(self, config: VoxelMapConfig | None = None):
         self.config = config or VoxelMapConfig()
         self.keys = np.zeros(0, dtype=np.int64)
         self.scores = np.zeros((0, self.config.num_classes), dtype=np.float32)
+        self.tsdf_keys = np.zeros(0, dtype=np.int64)
+        self.tsdf = np.zeros(0, dtype=np.float32)
+        self.weights = np.zeros(0, dtype=np.float32)
         self.frames_integrated = 0
+        self._surface: _Surface | None = None  # ray-cast lookup, rebuilt after integrating
 
     @property
     def voxel_size(self) -> float:
         return self.config.voxel_size
 
     @property
+    def truncation_m(self) -> float:
+        """The TSDF's truncation distance in metres."""
+        if self.config.truncation_in_geometry:
+            return self.config.truncation * self.geometry_size
+        return self.config.truncation * self.config.voxel_size
+
+    @property
+    def geometry_size(self) -> float:
+        return self.config.voxel_size / self.config.geometry_subdivision
+
+    @property
     def num_voxels(self) -> int:
+        """Voxels with class scores (those surface points fell in)."""
         return int(self.keys.size)
 
     @property
+    def num_tsdf_voxels(self) -> int:
+        """Voxels with a signed distance (every voxel within the truncation of a surface)."""
+        return int(self.tsdf_keys.size)
+
+    @property
     def nbytes(self) -> int:
-        """Bytes held by the map (keys and scores)."""
-        return int(self.keys.nbytes + self.scores.nbytes)
+        """Bytes held by the map: both layers' keys and values."""
+        arrays = (self.keys, self.scores, self.tsdf_keys, self.tsdf, self.weights)
+        return int(sum(a.nbytes for a in arrays))
 
     def _surface_keys(
         self, depth: np.ndarray, pose: np.ndarray, intrinsics: Intrinsics
     ) -> tuple[np.ndarray, np.ndarray]:
         """Keys of the voxels hit by the pixels with depth, and the (H, W) mask of those pixels."""
-        depth = np.asarray(depth, dtype=np.float32)
-        if depth.shape != (intrinsics.height, intrinsics.width):
-            raise ValueError(
-                f"voxel map: depth {depth.shape} does not match the camera "
-                f"({intrinsics.height}, {intrinsics.width})"
-            )
+        depth = _check_depth(depth, intrinsics)
         valid = np.isfinite(depth) & (depth > 0)
         points = backproject(np.where(valid, depth, 0.0), intrinsics, np.asarray(pose, np.float64))
         return pack_keys(voxel_coords(points[valid], self.voxel_size)), valid
@@ -111,7 +184,8 @@ class VoxelSemanticMap:
         intrinsics: Intrinsics,
     ) -> int:
         """Add one frame: ``prediction`` is an (H, W) NYU40 label map (0 = no vote) or an
-        (H, W, C) probability map. Returns the number of points added."""
+        (H, W, C) probability map. Every pixel with depth updates the TSDF, whatever its
+        label. Returns the number of points that added scores."""
         prediction = np.asarray(prediction)
         keys, valid = self._surface_keys(depth, pose, intrinsics)
         c = self.config.num_classes
@@ -145,9 +219,77 @@ class VoxelSemanticMap:
             raise ValueError(
                 f"integrate: expected (H, W) labels or (H, W, C) probabilities, got {prediction.shape}"
             )
+        self._fuse_distances(*self._frame_distances(depth, valid, pose, intrinsics))
         self._add(frame_keys, frame_scores.astype(np.float32))
         self.frames_integrated += 1
+        self._surface = None
         return int(keys.size)
+
+    def _frame_distances(
+        self, depth: np.ndarray, valid: np.ndarray, pose: np.ndarray, intrinsics: Intrinsics
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One frame's projective TSDF: sorted keys of the voxels within the truncation of its
+        surface points along their rays, and each voxel's distance (metres along the ray
+        through its centre, clipped to the truncation)."""
+        depth = np.asarray(depth, dtype=np.float32)
+        pose = np.asarray(pose, dtype=np.float64)
+        size, trunc = self.geometry_size, self.truncation_m
+        if not valid.any():
+            return np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, np.float32)
+        origins, dirs = pixel_rays(intrinsics, pose)
+        origin = origins[0, 0]
+        d = dirs[valid]
+        norm = np.linalg.norm(d, axis=1)
+        along = depth[valid] * norm  # metres from the camera to the surface along each ray
+        unit = d / norm[:, None]
+        # Candidates: the cells of samples every half voxel over each ray's band.
+        offsets = np.arange(-trunc, trunc + 0.25 * size, 0.5 * size)
+        parts = []
+        for i in range(0, along.size, _PIXEL_CHUNK):
+            t = np.maximum(along[i : i + _PIXEL_CHUNK, None] + offsets, 0.0)
+            points = origin + t[..., None] * unit[i : i + _PIXEL_CHUNK, None, :]
+            parts.append(np.unique(pack_keys(voxel_coords(points.reshape(-1, 3), size))))
+        keys = np.unique(np.concatenate(parts))
+        # Each candidate's centre, seen from the frame: the measured depth where it projects.
+        centres = (unpack_keys(keys) + 0.5) * size
+        cam = (centres - pose[:3, 3]) @ pose[:3, :3]
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = intrinsics.fx * cam[:, 0] / z + intrinsics.cx
+            v = intrinsics.fy * cam[:, 1] / z + intrinsics.cy
+        seen = (z > 0) & (u > -0.5) & (u < depth.shape[1] - 0.5)
+        seen &= (v > -0.5) & (v < depth.shape[0] - 0.5)
+        keys, z, u, v = keys[seen], z[seen], u[seen], v[seen]
+        measured, ok = _depth_at(depth, valid, u, v, jump=trunc)
+        ray = np.sqrt(
+            ((u - intrinsics.cx) / intrinsics.fx) ** 2
+            + ((v - intrinsics.cy) / intrinsics.fy) ** 2
+            + 1.0
+        )
+        sdf = (measured - z) * ray
+        behind = self.config.behind * size if self.config.behind else trunc
+        keep = ok & (sdf >= -behind)
+        w = np.ones(keep.sum(), np.float32)
+        if self.config.dropoff:
+            sk = sdf[keep]
+            w = np.where(sk < -size, (behind + sk) / max(behind - size, 1e-9), 1.0).astype(np.float32)
+            w = np.maximum(w, 1e-3)
+        return keys[keep], np.minimum(sdf[keep], trunc).astype(np.float32), w
+
+    def _fuse_distances(self, keys: np.ndarray, sdf: np.ndarray, wn: np.ndarray) -> None:
+        """Average one frame's distances (sorted unique ``keys``) into the TSDF, weight 1 each."""
+        if keys.size == 0:
+            return
+        rows = _rows_of(self.tsdf_keys, keys)
+        seen = rows >= 0
+        r = rows[seen]
+        w = self.weights[r]
+        self.tsdf[r] = (self.tsdf[r] * w + sdf[seen] * wn[seen]) / (w + wn[seen])
+        self.weights[r] = w + wn[seen]
+        at = np.searchsorted(self.tsdf_keys, keys[~seen])
+        self.tsdf_keys = np.insert(self.tsdf_keys, at, keys[~seen])
+        self.tsdf = np.insert(self.tsdf, at, sdf[~seen])
+        self.weights = np.insert(self.weights, at, wn[~seen])
 
     def _add(self, keys: np.ndarray, scores: np.ndarray) -> None:
         if keys.size == 0:
@@ -160,18 +302,62 @@ class VoxelSemanticMap:
         self.keys, self.scores = merged, out
 
     def lookup(self, keys: np.ndarray) -> np.ndarray:
-        """Row of each key in ``scores``, or -1 where the voxel is empty."""
-        if self.keys.size == 0:
-            return np.full(keys.shape, -1, dtype=np.int64)
-        rows = np.searchsorted(self.keys, keys)
-        rows = np.minimum(rows, self.keys.size - 1)
-        return np.where(self.keys[rows] == keys, rows, -1)
+        """Row of each key in ``scores``, or -1 where the voxel has no scores."""
+        return _rows_of(self.keys, keys)
 
-    def labels_for_view(
+    def raycast(self, pose: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """Cast every pixel's ray of a camera at ``pose`` through the map: (H, W) uint8 NYU40
+        labels of the voxel holding the surface each ray meets first (0 where it meets none
+        within ``max_range``, or no scores are near that point) and (H, W) float32 z-depth of
+        that surface point (0 where the ray meets no surface)."""
+        h, w = intrinsics.height, intrinsics.width
+        labels = np.zeros(h * w, dtype=np.uint8)
+        depth = np.zeros(h * w, dtype=np.float32)
+        surface = self._surface_index()
+        if surface is None:
+            return labels.reshape(h, w), depth.reshape(h, w)
+        origins, dirs = pixel_rays(intrinsics, np.asarray(pose, dtype=np.float64))
+        dirs = dirs.reshape(-1, 3)
+        origin = origins.reshape(-1, 3)[0]
+        norm = np.linalg.norm(dirs, axis=1)  # metres along the ray per metre of z-depth
+        unit = dirs / norm[:, None]
+        t = np.concatenate(
+            [
+                surface.first_crossing(origin, unit[i : i + _RAY_CHUNK], self.config.max_range, self._accept())
+                for i in range(0, unit.shape[0], _RAY_CHUNK)
+            ]
+        )
+        rays = np.flatnonzero(np.isfinite(t))
+        points = origin + t[rays, None] * unit[rays]
+        scores = self._scores_at(pack_keys(voxel_coords(points, self.voxel_size)))
+        found = scores.max(axis=1) > 0
+        labels[rays] = np.where(found, scores.argmax(axis=1) + 1, UNKNOWN).astype(np.uint8)
+        depth[rays] = (t[rays] / norm[rays]).astype(np.float32)
+        return labels.reshape(h, w), depth.reshape(h, w)
+
+    def _accept(self):
+        import os
+        mode = os.environ.get("ACCEPT", "")
+        if not mode:
+            return None
+        r = int(mode)
+        offs = _cube_offsets(r)
+        def acc(p):
+            cells = voxel_coords(p, self.voxel_size)
+            keys = pack_keys((cells[:, None, :] + offs[None]).reshape(-1, 3))
+            return (self.lookup(keys) >= 0).reshape(-1, offs.shape[0]).any(axis=1)
+        return acc
+
+    def labels_for_pose(self, pose: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+        """(H, W) uint8 NYU40 labels of a camera at ``pose``, read by ray casting (:meth:`raycast`)."""
+        return self.raycast(pose, intrinsics)[0]
+
+    def labels_at_depth(
         self, depth: np.ndarray, pose: np.ndarray, intrinsics: Intrinsics
     ) -> np.ndarray:
-        """(H, W) uint8 NYU40 labels of a view: the arg-max class of the voxel at each pixel's
-        surface point; 0 where the pixel has no depth or no (searched) voxel has a score."""
+        """(H, W) uint8 NYU40 labels read through a view's own depth instead of by ray casting:
+        the class of the voxel at each pixel's measured surface point (0 where the pixel has
+        no depth or no scores are near that voxel). Kept to measure what ray casting changes."""
         keys, valid = self._surface_keys(depth, pose, intrinsics)
         scores = self._scores_at(keys)
         labels = np.where(scores.max(axis=1) > 0, scores.argmax(axis=1) + 1, UNKNOWN)
@@ -179,7 +365,16 @@ class VoxelSemanticMap:
         out[valid] = labels.astype(np.uint8)
         return out
 
+    def _surface_index(self) -> _Surface | None:
+        if self._surface is None and (self.tsdf <= 0).any():
+            self._surface = _Surface(
+                unpack_keys(self.tsdf_keys), self.tsdf, self.tsdf_keys, self.geometry_size
+            )
+        return self._surface
+
     def _scores_at(self, keys: np.ndarray) -> np.ndarray:
+        """Scores (N, C) of the voxels ``keys``; where one has none, the summed scores of the
+        voxels within ``search_radius`` cells."""
         rows = self.lookup(keys)
         c = self.config.num_classes
         scores = np.zeros((keys.size, c), dtype=np.float32)
@@ -187,12 +382,10 @@ class VoxelSemanticMap:
         scores[hit] = self.scores[rows[hit]]
         r = self.config.search_radius
         missing = np.flatnonzero(~hit)
-        if r == 0 or missing.size == 0:
+        if r == 0 or missing.size == 0 or self.keys.size == 0:
             return scores
         cells = unpack_keys(keys[missing])
-        offsets = np.stack(
-            np.meshgrid(*[np.arange(-r, r + 1)] * 3, indexing="ij"), axis=-1
-        ).reshape(-1, 3)
+        offsets = _cube_offsets(r)
         neighbours = pack_keys((cells[:, None, :] + offsets[None]).reshape(-1, 3))
         rows = self.lookup(neighbours).reshape(missing.size, offsets.shape[0])
         gathered = np.where((rows >= 0)[..., None], self.scores[np.maximum(rows, 0)], 0.0).sum(
@@ -202,7 +395,7 @@ class VoxelSemanticMap:
         return scores
 
     def voxel_labels(self) -> np.ndarray:
-        """(N,) arg-max NYU40 id of every voxel (0 where all scores are zero)."""
+        """(N,) arg-max NYU40 id of every voxel with scores (0 where all scores are zero)."""
         if self.num_voxels == 0:
             return np.zeros(0, dtype=np.uint8)
         return np.where(
@@ -210,5 +403,332 @@ class VoxelSemanticMap:
         ).astype(np.uint8)
 
     def voxel_centers(self) -> np.ndarray:
-        """(N, 3) world coordinates of the voxel centres, in ``keys`` order."""
+        """(N, 3) world coordinates of the centres of the voxels with scores, in ``keys`` order."""
         return (unpack_keys(self.keys) + 0.5) * self.voxel_size
+
+
+def _check_depth(depth: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    depth = np.asarray(depth, dtype=np.float32)
+    if depth.shape != (intrinsics.height, intrinsics.width):
+        raise ValueError(
+            f"voxel map: depth {depth.shape} does not match the camera "
+            f"({intrinsics.height}, {intrinsics.width})"
+        )
+    return depth
+
+
+def _depth_at(
+    depth: np.ndarray, valid: np.ndarray, u: np.ndarray, v: np.ndarray, jump: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Measured z-depth at sub-pixel positions (``u``, ``v``; pixel centres at integers) and
+    whether there is one: bilinear between the four pixels around the position where all have
+    depth within ``jump`` of each other (one surface), else the nearest pixel's."""
+    h, w = depth.shape
+    u0 = np.clip(np.floor(u), 0, w - 1).astype(np.int64)
+    v0 = np.clip(np.floor(v), 0, h - 1).astype(np.int64)
+    u1, v1 = np.minimum(u0 + 1, w - 1), np.minimum(v0 + 1, h - 1)
+    fu, fv = np.clip(u - u0, 0.0, 1.0), np.clip(v - v0, 0.0, 1.0)
+    corners = [(v0, u0), (v0, u1), (v1, u0), (v1, u1)]
+    d = np.stack([depth[r, c] for r, c in corners])
+    ok = np.stack([valid[r, c] for r, c in corners])
+    bilinear = (d[0] * (1 - fu) + d[1] * fu) * (1 - fv) + (d[2] * (1 - fu) + d[3] * fu) * fv
+    smooth = ok.all(axis=0) & (d.max(axis=0) - d.min(axis=0) <= jump)
+    un = np.clip(np.rint(u), 0, w - 1).astype(np.int64)
+    vn = np.clip(np.rint(v), 0, h - 1).astype(np.int64)
+    return np.where(smooth, bilinear, depth[vn, un]), smooth | valid[vn, un]
+
+
+def _cube_offsets(radius: int) -> np.ndarray:
+    r = np.arange(-radius, radius + 1)
+    return np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def _box(cells: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int], np.ndarray, bool]:
+    """The bounding box of ``cells`` padded by one cell: its lowest cell, shape, flat strides
+    and whether a dense grid over it fits in ``MAX_DENSE_CELLS``."""
+    lo = cells.min(axis=0) - 1
+    shape = tuple(int(v) for v in cells.max(axis=0) + 2 - lo)
+    strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
+    return lo, shape, strides, math.prod(shape) <= MAX_DENSE_CELLS  # type: ignore[return-value]
+
+
+class _CellSet:
+    """A set of integer cells with a vectorised membership test: a dense boolean grid over the
+    cells' bounding box (padded by one empty cell) when it has at most ``MAX_DENSE_CELLS``
+    cells, else their sorted packed keys."""
+
+    def __init__(self, cells: np.ndarray):
+        self.lo, self.shape, self.strides, dense = _box(cells)
+        self.hi = self.lo + np.array(self.shape)  # exclusive
+        self.grid: np.ndarray | None = None
+        self.keys: np.ndarray | None = None
+        if dense:
+            self.grid = np.zeros(math.prod(self.shape), dtype=bool)
+            self.grid[(cells - self.lo) @ self.strides] = True
+        else:
+            self.keys = np.unique(pack_keys(cells))
+
+    def cell_of(self, flat: np.ndarray) -> np.ndarray:
+        """Integer cells (N, 3) of flat indices into the dense grid."""
+        idx = np.stack(np.unravel_index(flat, self.shape), axis=-1)
+        return idx + self.lo
+
+    def contains(self, cells: np.ndarray) -> np.ndarray:
+        """(...,) whether each integer cell (..., 3) is in the set."""
+        if self.grid is not None:
+            # The callers' cells lie in the box (rays are clipped to it); one cell beyond, as
+            # rounding may give at a face, lands on the empty padding.
+            flat = (cells - self.lo) @ self.strides
+            return self.grid[np.clip(flat, 0, self.grid.size - 1)]
+        keys = pack_keys(cells.reshape(-1, 3))
+        rows = np.minimum(np.searchsorted(self.keys, keys), self.keys.size - 1)
+        return (self.keys[rows] == keys).reshape(cells.shape[:-1])
+
+
+class _CellValues:
+    """float32 values at integer cells, NaN at every other cell: a dense grid over the cells'
+    bounding box when it fits in ``MAX_DENSE_CELLS``, else the sorted packed keys."""
+
+    def __init__(self, cells: np.ndarray, values: np.ndarray, keys: np.ndarray):
+        self.lo, shape, self.strides, dense = _box(cells)
+        self.hi = self.lo + np.array(shape)
+        self.grid: np.ndarray | None = None
+        self.keys, self.values = keys, values
+        if dense:
+            self.grid = np.full(math.prod(shape), np.nan, dtype=np.float32)
+            self.grid[(cells - self.lo) @ self.strides] = values
+
+    def at(self, cells: np.ndarray) -> np.ndarray:
+        """Values (N,) at integer cells (N, 3)."""
+        inside = ((cells >= self.lo) & (cells < self.hi)).all(axis=1)
+        out = np.full(cells.shape[0], np.nan, dtype=np.float32)
+        if self.grid is not None:
+            out[inside] = self.grid[(cells[inside] - self.lo) @ self.strides]
+            return out
+        rows = _rows_of(self.keys, pack_keys(cells[inside]))
+        out[np.flatnonzero(inside)[rows >= 0]] = self.values[rows[rows >= 0]]
+        return out
+
+
+class _Surface:
+    """The TSDF as a ray caster: trilinear samples of the distances, and which cells a ray
+    must reach before a sample can be non-positive (those within one cell of a voxel with a
+    non-positive distance: the eight voxels a trilinear sample mixes all lie that close to the
+    cell holding it)."""
+
+    def __init__(self, cells: np.ndarray, tsdf: np.ndarray, keys: np.ndarray, voxel_size: float):
+        self.voxel_size = voxel_size
+        self.values = _CellValues(cells, tsdf, keys)
+        self.index = _RayIndex(cells[tsdf <= 0], voxel_size, radius=1)
+
+    def sample(self, points: np.ndarray) -> np.ndarray:
+        """Trilinear interpolation (N,) of the distances at world points (N, 3) between the
+        centres of the eight voxels around each, over those with a distance (NaN: none)."""
+        g = points / self.voxel_size - 0.5
+        base = np.floor(g)
+        frac = g - base
+        base = base.astype(np.int64)
+        total = np.zeros(points.shape[0])
+        weight = np.zeros(points.shape[0])
+        for corner in np.ndindex(2, 2, 2):
+            c = np.array(corner)
+            value = self.values.at(base + c)
+            w = np.prod(np.where(c == 1, frac, 1.0 - frac), axis=1)
+            seen = np.isfinite(value)
+            total += np.where(seen, w * value, 0.0)
+            weight += np.where(seen, w, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(weight > 1e-6, total / weight, np.nan)
+
+    def first_crossing(self, origin: np.ndarray, dirs: np.ndarray, max_range: float, accept=None) -> np.ndarray:
+        """Distance (N,) along unit rays ``dirs`` (N, 3) from ``origin`` to the first point
+        where the interpolated TSDF turns non-positive (NaN where none within ``max_range``):
+        linear between the last positive sample and the first non-positive one, or that
+        sample itself where the ray comes from unobserved space."""
+        o = np.asarray(origin, dtype=np.float64)
+        d = np.asarray(dirs, dtype=np.float64)
+        out = np.full(d.shape[0], np.nan)
+        step = 0.5 * self.voxel_size
+        offsets = step * np.arange(-1, _SURFACE_SAMPLES)  # one sample before the stop cell
+        rays, start, end = self.index.clip(o, d, max_range)
+        while rays.size:
+            hit, t_in, _ = self.index.march(o, d[rays], start, end)
+            rays, end = rays[hit], end[hit]
+            t = t_in[hit, None] + offsets
+            f = self.sample((o + t[..., None] * d[rays, None, :]).reshape(-1, 3)).reshape(t.shape)
+            before, after = f[:, :-1], f[:, 1:]
+            # Where the ray passes into non-positive distances: from a positive sample (the
+            # zero crossing, linear between the two) or from unobserved space (the sample).
+            enter = (after <= 0) & ~(before <= 0) & (t[:, 1:] <= end[:, None])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                shift = np.where(before > 0, step * after / (before - after), 0.0)
+            t_cross = t[:, 1:] + shift
+            if accept is not None:
+                rr, kk = np.nonzero(enter)
+                ok = accept(o + t_cross[rr, kk, None] * d[rays[rr]])
+                enter[rr[~ok], kk[~ok]] = False
+            found = enter.any(axis=1)
+            k = enter.argmax(axis=1)
+            out[rays[found]] = t_cross[found, k[found]]
+            going = ~found & (t[:, -1] < end)
+            rays, start, end = rays[going], t[going, -1], end[going]
+        return out
+
+
+class _RayIndex:
+    """Which cells stop a ray: the given cells, grown by ``radius`` cells; and, to skip empty
+    space, the coarse cells (``_COARSE`` voxels a side) that hold any of them."""
+
+    def __init__(self, cells: np.ndarray, voxel_size: float, radius: int):
+        if radius and cells.size:
+            grown = pack_keys((cells[:, None, :] + _cube_offsets(radius)[None]).reshape(-1, 3))
+            cells = unpack_keys(np.unique(grown))
+        self.voxel_size = voxel_size
+        self.empty = cells.shape[0] == 0
+        if self.empty:
+            return
+        self.fine = _CellSet(cells)
+        self.coarse = _CellSet(np.unique(np.floor_divide(cells, _COARSE), axis=0))
+        self.lo = self.fine.lo * voxel_size
+        self.hi = self.fine.hi * voxel_size
+
+    def clip(
+        self, origin: np.ndarray, dirs: np.ndarray, max_range: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rays (indices into ``dirs``, unit (N, 3)) that cross the stopping cells' bounding
+        box within ``max_range``, and where each enters and leaves it (slab test)."""
+        if self.empty:
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_lo = (self.lo - origin) / dirs
+            t_hi = (self.hi - origin) / dirs
+        t_near = np.nan_to_num(np.minimum(t_lo, t_hi), nan=-np.inf)
+        t_far = np.nan_to_num(np.maximum(t_lo, t_hi), nan=np.inf)
+        start = np.maximum(t_near.max(axis=1), 0.0)
+        end = np.minimum(t_far.min(axis=1), max_range)
+        rays = np.flatnonzero(start < end)
+        return rays, start[rays], end[rays]
+
+    def march(
+        self, origin: np.ndarray, dirs: np.ndarray, start: np.ndarray, end: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Follow unit-length rays from ``origin`` (3,) along ``dirs`` (N, 3) between ``start``
+        and ``end`` (N,) (inside the box, see :meth:`clip`); returns (N,) whether each meets a
+        stopping cell, the distance where it enters the first one (``start`` if it begins in
+        one) and that cell (N, 3). The march walks coarse cells and looks inside the ones that
+        hold stopping cells."""
+        o = np.asarray(origin, dtype=np.float64)
+        d = np.asarray(dirs, dtype=np.float64)
+        n = d.shape[0]
+        hit = np.zeros(n, dtype=bool)
+        t_hit = np.zeros(n)
+        cell_hit = np.zeros((n, 3), dtype=np.int64)
+        if self.empty:
+            return hit, t_hit, cell_hit
+        rays = np.flatnonzero(start < end)
+        start, end = start[rays], end[rays]
+        coarse_size = _COARSE * self.voxel_size
+        while rays.size:
+            # The next coarse cell on each ray that holds stopping cells ...
+            got, t_in, t_out, _ = _first_stop(
+                o, d[rays], start, end, coarse_size, self.coarse, _WINDOW_CELLS
+            )
+            rays, start, end = rays[got], t_in[got], end[got]
+            stop_at = np.minimum(t_out[got], end)
+            # ... and the first stopping cell inside it; rays that meet none there go on.
+            # (a coarse cell spans less than 2 * _COARSE voxels along any ray: one window)
+            got, f_in, _, cell = _first_stop(
+                o, d[rays], start, stop_at, self.voxel_size, self.fine, 2 * _COARSE
+            )
+            hit[rays[got]] = True
+            t_hit[rays[got]] = f_in[got]
+            cell_hit[rays[got]] = cell[got]
+            going = ~got & (stop_at < end)
+            rays, start, end = rays[going], stop_at[going], end[going]
+        return hit, t_hit, cell_hit
+
+
+def _first_stop(
+    o: np.ndarray,
+    d: np.ndarray,
+    start: np.ndarray,
+    end: np.ndarray,
+    size: float,
+    cells: _CellSet,
+    window: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For rays ``o + t d`` (unit ``d`` (R, 3)) between ``start`` and ``end`` (R,), the first
+    cell of edge ``size`` in ``cells`` that each crosses, marching ``window`` cells' length at a
+    time: (R,) whether there is one, the ``t`` where the ray enters and leaves it, and the cell
+    (R, 3).
+
+    Exact traversal (Amanatides and Woo's, vectorised): a ray changes cell where it crosses a
+    cell plane, one axis at a time. Within a window the plane crossings of the three axes,
+    sorted, cut the ray into pieces that each lie in one cell; piece j's cell is the first
+    piece's moved one step along the axis of each of the first j crossings.
+    """
+    n = start.shape[0]
+    hit = np.zeros(n, dtype=bool)
+    t_in = np.zeros(n)
+    t_out = np.zeros(n)
+    found = np.zeros((n, 3), dtype=np.int64)
+    k = np.arange(1, window + 2, dtype=np.float64)  # enough planes for one window
+    axis_of = np.repeat(np.arange(3), k.size)  # axis of each column of the crossings
+    todo = np.arange(n)
+    a, b = start.copy(), end
+    while todo.size:
+        rows = np.arange(todo.size)
+        dd = d[todo]
+        lo = a
+        hi = np.minimum(lo + window * size, b[todo])
+        x = (o + lo[:, None] * dd) / size  # (R, 3) where this window begins, in cells
+        step = np.sign(dd).astype(np.int64)
+        # The cell the ray is in just after ``x`` (on a plane: the one it moves into), and the
+        # k-th plane it crosses along each axis from there, in travel order. Planes are counted
+        # from the cell, so the walk below stays consistent however ``x`` was rounded.
+        cell0 = np.where(dd < 0, np.ceil(x) - 1, np.floor(x))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            planes = (cell0 + (dd > 0))[:, :, None] + step[:, :, None] * (k - 1)  # (R, 3, K)
+            cross = lo[:, None, None] + (planes - x[:, :, None]) * size / dd[:, :, None]
+        cross = np.where(np.isfinite(cross), cross, np.inf).reshape(todo.size, -1)
+        cell0 = cell0.astype(np.int64)
+        order = np.argsort(cross, axis=1)
+        t = np.take_along_axis(cross, order, axis=1)
+        axis = axis_of[order]
+        # Pieces: [lo, t0], [t0, t1], ... up to ``hi``, each in one cell; rounding can leave a
+        # piece empty, and an empty piece stops no ray.
+        enter = np.maximum(np.concatenate([lo[:, None], t], axis=1), lo[:, None])
+        leave = np.concatenate([t, np.full((todo.size, 1), np.inf)], axis=1)
+        real = (np.minimum(leave, hi[:, None]) > enter) & (enter < hi[:, None])
+        if cells.grid is not None:
+            move = np.take_along_axis(step * cells.strides, axis, axis=1)
+            flat = ((cell0 - cells.lo) @ cells.strides)[:, None] + np.concatenate(
+                [np.zeros((todo.size, 1), np.int64), np.cumsum(move, axis=1)], axis=1
+            )
+            flat = np.clip(flat, 0, cells.grid.size - 1)
+            stop = cells.grid[flat] & real
+        else:
+            walk = _walk(cell0, step, axis)
+            stop = cells.contains(walk) & real
+        j = stop.argmax(axis=1)
+        got = stop[rows, j]
+        r, jg = rows[got], j[got]
+        idx = todo[got]
+        hit[idx] = True
+        t_in[idx] = enter[r, jg]
+        t_out[idx] = leave[r, jg]  # where the ray leaves the cell, even past ``end``
+        if cells.grid is not None:
+            found[idx] = cells.cell_of(flat[r, jg])
+        else:
+            found[idx] = walk[r, jg]
+        going = ~got & (hi < b[todo])
+        todo, a = todo[going], hi[going]
+    return hit, t_in, t_out, found
+
+
+def _walk(cell0: np.ndarray, step: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Cells (R, P + 1, 3) of the pieces of rays that start in ``cell0`` (R, 3) and then cross
+    planes of the axes ``axis`` (R, P), moving ``step`` (R, 3) along each."""
+    counts = np.stack([np.cumsum(axis == a, axis=1) for a in range(3)], axis=-1)
+    counts = np.concatenate([np.zeros((axis.shape[0], 1, 3), np.int64), counts], axis=1)
+    return cell0[:, None, :] + step[:, None, :] * counts

@@ -21,12 +21,24 @@ from csa_core.data.synth.generate import (
     scene_seed,
     synthesize,
 )
+from csa_core.data.synth.kinect import (
+    NOISY_FOLDER,
+    KinectConfig,
+    axial_sigma,
+    degrade_scene,
+    degrade_scene_folder,
+)
 
 __all__ = [
     "FAMILIES",
+    "KinectConfig",
     "Lighting",
     "Look",
+    "NOISY_FOLDER",
     "RoomFamily",
+    "axial_sigma",
+    "degrade_scene",
+    "degrade_scene_folder",
     "family_names",
     "generate_scene",
     "get_family",

@@ -1,7 +1,14 @@
-"""``csa serve``: run the HTTP service (API plus an embedded worker unless --no-worker).
+"""``csa serve``: the service's own command, added to ``csa`` as a plugin.
 
-Settings come from CSA_* environment variables (see server/settings.py); flags override them.
-The web stack is imported only when the command runs, so ``csa_core`` needs no web packages.
+``csa_core`` never imports the service. Its command line finds this group through the
+``csa.commands`` entry point that ``pyproject.toml`` declares (``register_serve``), so the
+dependency runs one way: ``server`` -> ``csa_core``. Jobs run inside the served process or,
+with ``CSA_EXECUTOR=ray``, on a Ray cluster that the process dispatches to; there is no
+separate worker command (docs/architecture.md, "Executors").
+
+Settings come from CSA_* environment variables (see ``server/settings.py``); flags override
+them. The web stack is imported only when a command runs, so building the ``csa`` parser
+stays fast and works without the server extra installed.
 """
 
 from __future__ import annotations
@@ -10,14 +17,17 @@ import argparse
 import sys
 from pathlib import Path
 
+SERVER_EXTRA_HINT = "the service needs the server extra (pip install 'csa[server]')"
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("serve", help="run the adaptation service (REST API and job worker)")
+
+def register_serve(sub: argparse._SubParsersAction) -> None:
+    """``csa serve``: the REST API plus its job executor unless ``--no-worker``."""
+    p = sub.add_parser("serve", help="run the adaptation service (REST API and its job executor)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1; 0.0.0.0 in containers)")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--data-dir", type=Path, default=None, help="database, artifacts and API key (default: $CSA_DATA_DIR or ./csa-data)")
     p.add_argument("--database-url", default=None, help="SQLAlchemy URL (default: SQLite in the data folder)")
-    p.add_argument("--no-worker", action="store_true", help="do not run jobs in this process (use `csa worker`)")
+    p.add_argument("--no-worker", action="store_true", help="run no jobs from this process (an API replica beside one that runs them)")
     p.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"))
     p.set_defaults(func=run_serve)
 
@@ -40,7 +50,7 @@ def run_serve(args: argparse.Namespace) -> int:
 
         from server.app import create_app
     except ImportError as e:
-        print(f"csa serve: the service needs the server extra (pip install 'csa[server]'): {e}", file=sys.stderr)
+        print(f"csa serve: {SERVER_EXTRA_HINT}: {e}", file=sys.stderr)
         return 2
     overrides: dict[str, object] = {"embedded_worker": False} if args.no_worker else {}
     app = create_app(settings_from_args(args, **overrides))

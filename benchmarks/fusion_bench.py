@@ -1,0 +1,438 @@
+"""Label fusion side by side: the voxel map (the Mapping baseline's fusion) against each NeRF
+preset, on the same frames and labels, in one run. Prints one Markdown table (not a test).
+
+Examples (run from the repository root):
+
+    python benchmarks/fusion_bench.py --families all --variants clean,hard --frames 250
+    python benchmarks/fusion_bench.py synth:office:0 --variants hard --presets fast --steps 300
+    python benchmarks/fusion_bench.py folder:data/office_0 --labels label-noisy
+    python benchmarks/fusion_bench.py synth:studio:1 --predictions model.safetensors
+    python benchmarks/fusion_bench.py ../shared/data/7scenes-kitchen-100 --frames 100
+
+Scenes: ``synth:FAMILY:SEED`` (rendered in memory), ``folder:PATH`` or a bare path to a scene
+folder, and a 7-Scenes sequence folder (bare path or ``7scenes:PATH``), imported with the
+project's importer at ``--size`` and moved to the Kinect colour camera. ``--families`` adds
+``synth:FAMILY:SEED`` for each family (``all``: every family of ``csa data families``).
+
+Labels fused (training views; ground truth ``label-nyu40`` scores them):
+``--noise`` (default for scenes with ground truth) corrupts each frame's ground truth
+(``csa_core.nerf.label_noise``); ``--labels NAME`` takes a label folder of the scene;
+``--predictions MODEL.safetensors`` takes a segmentation network's predictions.
+``--variants hard`` turns each scene into a Kinect-like capture first
+(``csa_core.data.synth.kinect``): noisy depth with holes and noisy colour, and with ``--noise``
+labels with systematic (view-consistent) errors besides the per-frame ones; with
+``--labels``/``--predictions`` the labels stay as given (predictions are made on the degraded
+colour). Scenes without labels (7-Scenes) get colour and depth quality instead: the NeRF's
+held-out PSNR and depth L1 (rendered without the view's depth) against the map's depth L1 and
+coverage (share of held-out pixels whose ray meets the map).
+
+Rows: ``input`` is the per-frame labels themselves; ``map`` fuses them in 5 cm voxels
+(``build_voxel_map``) and reads each view by ray casting (``render_map_labels``, Frey et al.);
+``map, depth read-back`` reads the same map through each view's own measured depth (the
+older read-back: it can only label pixels with depth); one row per NeRF preset
+(``fit_semantic_nerf``, rendered with ``render_views``). Columns: mIoU on the training views
+and on the held-out views (the scene's last 20%), fit seconds, render seconds per view (train
+and held-out views together), stored bytes (map: keys and scores as held in memory; NeRF: its
+checkpoint file) and peak memory: the process's peak resident set size while that fuser fit
+and rendered (Linux: VmHWM, reset before each fuser through /proc/self/clear_refs; elsewhere
+``resource.getrusage``, the peak since the process started). It includes the interpreter,
+the libraries and the scene in memory; ``RSS before`` is the resident size when the fuser
+started.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import resource
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from nerf_bench import apply_overrides, color_camera, load_scene, psnr
+
+from csa_core.adapt.baselines.mapping import build_voxel_map, render_map_labels
+from csa_core.adapt.baselines.voxel_map import VoxelMapConfig
+from csa_core.atomic_io import write_text_atomic
+from csa_core.data.scene import NYU40_FOLDER, Scene
+from csa_core.data.synth import NOISY_FOLDER, degrade_scene, family_names, parse_size
+from csa_core.errors import CSAInputError
+from csa_core.eval import ConfusionMatrix
+from csa_core.nerf import (
+    corrupt_labels,
+    fit_semantic_nerf,
+    preset,
+    render_image,
+    render_views,
+    save_checkpoint,
+)
+
+INPUT = "input"  # label folder the fusers read in this benchmark
+
+
+# ---- peak memory -----------------------------------------------------------------------
+
+
+def _status_kb(field: str) -> int | None:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def reset_peak_rss() -> str:
+    """Reset the peak-RSS counter where the OS allows it; returns how peaks are measured."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return "VmHWM"
+    except OSError:
+        return "ru_maxrss"
+
+
+def peak_rss_mb(how: str) -> float:
+    if how == "VmHWM":
+        kb = _status_kb("VmHWM")
+        if kb is not None:
+            return kb / 1024
+    scale = 1 if sys.platform == "darwin" else 1024  # bytes on macOS, kB on Linux
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale / 2**20
+
+
+# ---- scenes and labels -----------------------------------------------------------------
+
+
+def scene_specs(args: argparse.Namespace) -> list[str]:
+    specs = list(args.scenes)
+    if args.families:
+        names = family_names() if args.families == "all" else args.families.split(",")
+        specs += [f"synth:{name}:{args.seed}" for name in names]
+    if not specs:
+        raise SystemExit("give scene(s) or --families (see --help)")
+    return specs
+
+
+def open_scene(spec: str, size: tuple[int, int], frames: int) -> tuple[Scene, bool]:
+    """A scene and whether it has ground-truth labels. A bare path is a 7-Scenes sequence
+    (frame-XXXXXX.color.*) or a scene folder."""
+    if ":" not in spec.split("/")[0]:
+        path = Path(spec)
+        seven = path.is_dir() and any(path.glob("frame-*.color.*"))
+        spec = f"7scenes:{spec}" if seven else f"folder:{spec}"
+    scene, labelled = load_scene(spec, size, frames)
+    if spec.startswith("7scenes:"):
+        scene, _ = color_camera(scene, "kinect")
+        scene.frames = scene.frames[:frames]
+        labelled = False
+    elif spec.startswith("folder:"):
+        scene.frames = scene.frames[:frames]
+        labelled = all(NYU40_FOLDER in f.labels for f in scene.frames)
+    return scene, labelled
+
+
+def prepare(scene: Scene, labelled: bool, variant: str, args: argparse.Namespace) -> str | None:
+    """Make the ``variant`` of ``scene`` in place and put the labels to fuse under ``INPUT``;
+    returns what they are (``None``: no labels)."""
+    source = "predictions" if args.predictions else f"folder {args.labels}" if args.labels else None
+    if source is None and not labelled:
+        return None
+    simulate = source is None  # --noise
+    if variant == "hard":
+        hard = degrade_scene(
+            scene, args.seed, source=NYU40_FOLDER if simulate else None, target=NOISY_FOLDER
+        )
+        scene.frames = hard.frames
+    if args.labels:
+        missing = [f.name for f in scene.frames if args.labels not in f.labels]
+        if missing:
+            raise SystemExit(
+                f"--labels {args.labels}: frame(s) {', '.join(missing[:5])} of {scene.name} have "
+                f"none (label folders: {', '.join(scene.label_folders) or 'none'})"
+            )
+        for f in scene.frames:
+            f.labels[INPUT] = f.labels[args.labels]
+        return source
+    if args.predictions:
+        from csa_core.seg.checkpoint import load_checkpoint
+        from csa_core.seg.predict import predict_scene
+
+        model, card = load_checkpoint(args.predictions, device=args.device_torch)
+        size = tuple(card.input_size) if card.input_size else None
+        labels = predict_scene(model, scene, "all", device=args.device_torch, size=size)
+        for f in scene.frames:
+            f.labels[INPUT] = labels[f.name]
+        return f"{source} of {Path(args.predictions).name}"
+    if variant == "hard":
+        for f in scene.frames:
+            f.labels[INPUT] = f.labels[NOISY_FOLDER]
+        return "systematic + per-frame errors"
+    rng = np.random.default_rng(args.seed)
+    for f in scene.frames:
+        f.labels[INPUT] = corrupt_labels(f.labels[NYU40_FOLDER], rng)
+    return "per-frame errors"
+
+
+def miou(labels: dict[str, np.ndarray], frames) -> float:
+    matrix = ConfusionMatrix()
+    for f in frames:
+        matrix.update(labels[f.name], f.labels[NYU40_FOLDER])
+    return matrix.miou()
+
+
+# ---- fusers ----------------------------------------------------------------------------
+
+
+def measured(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:
+    """Run one fuser, ``fn(*args)``; add its peak resident memory to its row."""
+    how = reset_peak_rss()
+    start = _status_kb("VmRSS")
+    row = fn(*args)
+    row["peak_rss_mb"] = peak_rss_mb(how)
+    if start is not None:
+        row["start_rss_mb"] = start / 1024
+    row["peak_rss_how"] = how
+    return row
+
+
+def map_rows(scene: Scene, has_labels: bool, args: argparse.Namespace) -> list[dict[str, Any]]:
+    train, val = scene.train_frames, scene.val_frames
+    cfg = VoxelMapConfig(voxel_size=args.voxel)
+    if has_labels:
+        inputs = {f.name: f.labels[INPUT] for f in train}
+    else:  # geometry only: every measured point votes for one class
+        inputs = {f.name: (f.depth > 0).astype(np.uint8) for f in train}
+    views = [f.name for f in scene.frames]
+    out: dict[str, Any] = {}
+
+    def fit_and_cast() -> dict[str, Any]:
+        t0 = time.perf_counter()
+        out["map"] = build_voxel_map(scene, inputs, cfg)
+        fit_s = time.perf_counter() - t0
+        row = {"fuser": f"map ({100 * args.voxel:.0f} cm)", "fit_s": fit_s}
+        row["stored_mb"] = out["map"].nbytes / 1e6
+        t0 = time.perf_counter()
+        if has_labels:
+            labels = render_map_labels(out["map"], scene, views)
+        else:
+            cast = {f.name: out["map"].raycast(f.pose, scene.intrinsics) for f in val}
+        row["render_s_per_view"] = (time.perf_counter() - t0) / (
+            len(views) if has_labels else len(val)
+        )
+        if has_labels:
+            row["miou_train"], row["miou_val"] = miou(labels, train), miou(labels, val)
+        else:
+            measured_px = [f.depth > 0 for f in val]
+            hit = [cast[f.name][1] > 0 for f in val]
+            row["val_coverage"] = float(np.mean([h.mean() for h in hit]))
+            err = [
+                np.abs(cast[f.name][1] - f.depth)[m & h]
+                for f, m, h in zip(val, measured_px, hit, strict=True)
+            ]
+            row["val_depth_l1_m"] = float(np.concatenate(err).mean())
+        return row
+
+    rows = [measured(fit_and_cast)]
+    if has_labels:
+
+        def depth_read() -> dict[str, Any]:
+            t0 = time.perf_counter()
+            labels = render_map_labels(out["map"], scene, views, read="depth")
+            row = {"fuser": "map, depth read-back", "fit_s": rows[0]["fit_s"]}
+            row["render_s_per_view"] = (time.perf_counter() - t0) / len(views)
+            row["stored_mb"] = rows[0]["stored_mb"]
+            row["miou_train"], row["miou_val"] = miou(labels, train), miou(labels, val)
+            return row
+
+        rows.append(measured(depth_read))
+    return rows
+
+
+def nerf_row(scene: Scene, has_labels: bool, name: str, args: argparse.Namespace) -> dict[str, Any]:
+    train, val = scene.train_frames, scene.val_frames
+    cfg = preset(name)
+    apply_overrides(cfg, args.set)
+    nerf, stats = fit_semantic_nerf(
+        scene,
+        INPUT if has_labels else None,
+        cfg,
+        device=args.device,
+        frames=train,
+        steps=args.steps,
+        progress=False,
+    )
+    row: dict[str, Any] = {"fuser": f"NeRF {name} ({stats.steps} steps)", "fit_s": stats.seconds}
+    with tempfile.TemporaryDirectory() as tmp:
+        row["stored_mb"] = save_checkpoint(nerf, Path(tmp) / "nerf.safetensors") / 1e6
+    t0 = time.perf_counter()
+    if has_labels:
+        rendered = {}
+        for views in ("train", "val"):
+            for v in render_views(nerf, scene, views, semantics=True, color=False):
+                rendered[v.name] = v.labels
+        row["render_s_per_view"] = (time.perf_counter() - t0) / len(scene.frames)
+        row["miou_train"], row["miou_val"] = miou(rendered, train), miou(rendered, val)
+        return row
+    # Colour and geometry at the held-out views, rendered without their measured depth.
+    mses, errs = [], []
+    for f in val:
+        v = render_image(nerf, f.pose, scene.intrinsics, semantics=False)
+        mses.append(float(np.mean((v.color.astype(np.float64) - f.color) ** 2) / 255.0**2))
+        m = f.depth > 0
+        errs.append(np.abs(v.depth[m] - f.depth[m]))
+    row["render_s_per_view"] = (time.perf_counter() - t0) / len(val)
+    row["val_psnr"] = psnr(float(np.mean(mses)))
+    row["val_depth_l1_m"] = float(np.concatenate(errs).mean())
+    row["val_coverage"] = 1.0
+    return row
+
+
+def run(args: argparse.Namespace) -> list[dict[str, Any]]:
+    rows = []
+    for spec in scene_specs(args):
+        for variant in args.variants.split(","):
+            scene, labelled = open_scene(spec, args.size, args.frames)
+            if variant == "hard" and not labelled and not (args.labels or args.predictions):
+                print(f"{spec}: no ground truth to degrade from; hard variant skipped")
+                continue
+            labels = prepare(scene, labelled, variant, args)
+            has_labels = labels is not None
+            head = {"scene": scene.name, "variant": variant, "labels": labels or "no labels"}
+            head["views"] = f"{scene.num_train}+{len(scene.val_frames)}"
+            print(f"{spec} ({variant}): {len(scene)} frames, labels: {head['labels']}", flush=True)
+            if has_labels and labelled:
+                inputs = {f.name: f.labels[INPUT] for f in scene.frames}
+                rows.append(
+                    {
+                        **head,
+                        "fuser": "input (per frame)",
+                        "miou_train": miou(inputs, scene.train_frames),
+                        "miou_val": miou(inputs, scene.val_frames),
+                    }
+                )
+            scored = has_labels and labelled
+            fused = map_rows(scene, scored, args)
+            for name in [n for n in args.presets.split(",") if n not in ("", "none")]:
+                fused.append(measured(nerf_row, scene, scored, name, args))
+            for row in fused:
+                rows.append({**head, **row})
+                print("  " + ", ".join(f"{k} {fmt(k, v)}" for k, v in row.items()), flush=True)
+    return rows
+
+
+# ---- output ----------------------------------------------------------------------------
+
+COLUMNS = [
+    ("scene", "{}"),
+    ("variant", "{}"),
+    ("labels", "{}"),
+    ("views", "{}"),
+    ("fuser", "{}"),
+    ("miou_train", "{:.1%}"),
+    ("miou_val", "{:.1%}"),
+    ("fit_s", "{:.2f}"),
+    ("render_s_per_view", "{:.3f}"),
+    ("stored_mb", "{:.2f}"),
+    ("peak_rss_mb", "{:.0f}"),
+    ("start_rss_mb", "{:.0f}"),
+    ("val_psnr", "{:.2f}"),
+    ("val_depth_l1_m", "{:.3f}"),
+    ("val_coverage", "{:.1%}"),
+]
+HEADERS = {
+    "miou_train": "mIoU train views",
+    "miou_val": "mIoU val views",
+    "fit_s": "fit s",
+    "render_s_per_view": "render s / view",
+    "stored_mb": "stored MB",
+    "peak_rss_mb": "peak RSS MB",
+    "start_rss_mb": "RSS before MB",
+    "val_psnr": "val PSNR",
+    "val_depth_l1_m": "val depth L1 m",
+    "val_coverage": "val coverage",
+}
+
+
+def fmt(key: str, value: Any) -> str:
+    spec = dict(COLUMNS).get(key, "{}")
+    try:
+        return spec.format(value)
+    except (ValueError, TypeError):
+        return str(value)
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    cols = [c for c, _ in COLUMNS if any(c in r for r in rows)]
+    lines = ["| " + " | ".join(HEADERS.get(c, c) for c in cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        cells = []
+        for c in cols:
+            if c in r:
+                cells.append(fmt(c, r[c]))
+            elif c.startswith("miou") and r.get("labels") == "no labels":
+                cells.append("no labels")
+            else:
+                cells.append("-")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "scenes", nargs="*", help="synth:FAMILY:SEED, folder:PATH, 7scenes:PATH or a path"
+    )
+    p.add_argument("--families", default=None, help="'all' or comma-separated synthetic families")
+    p.add_argument("--seed", type=int, default=0, help="room seed of --families, noise seed")
+    p.add_argument("--frames", type=int, default=250, help="frames per scene (first N)")
+    p.add_argument("--size", default="160x120", help="WxH working size")
+    p.add_argument("--variants", default="clean", help="comma-separated: clean, hard")
+    labels = p.add_mutually_exclusive_group()
+    labels.add_argument("--noise", action="store_true", help="corrupted ground truth (default)")
+    labels.add_argument("--labels", default=None, help="a label folder of the scene")
+    labels.add_argument("--predictions", default=None, help="a segmentation network checkpoint")
+    p.add_argument("--presets", default="fast", help="comma-separated NeRF presets, or none")
+    p.add_argument("--steps", type=int, default=None, help="override the presets' step counts")
+    p.add_argument("--set", action="append", default=[], help="NeRF config override, a.b=value")
+    p.add_argument("--voxel", type=float, default=0.05, help="voxel size of the map, metres")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--json", default=None, help="also write the rows to this JSON file")
+    args = p.parse_args()
+    bad = set(args.variants.split(",")) - {"clean", "hard"}
+    if bad:
+        raise SystemExit(f"--variants: unknown {', '.join(sorted(bad))} (clean, hard)")
+    from csa_core.device import resolve_device
+
+    torch.set_num_threads(args.threads)
+    try:
+        args.size = parse_size(args.size)
+        args.device_torch = resolve_device(None if args.device == "auto" else args.device)
+        rows = run(args)
+    except CSAInputError as err:
+        raise SystemExit(f"fusion_bench: {err}") from None
+    w, h = args.size
+    how = rows[-1].get("peak_rss_how", "") if rows else ""
+    print(
+        f"\n{w}x{h}, up to {args.frames} frames per scene (first 80% train, last 20% val), "
+        f"torch {torch.__version__}, {platform.machine()} {torch.get_num_threads()} threads, "
+        f"device {args.device_torch}; peak RSS by {how}"
+    )
+    print(table(rows))
+    if args.json:
+        write_text_atomic(args.json, json.dumps({"argv": sys.argv, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

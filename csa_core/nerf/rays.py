@@ -1,0 +1,122 @@
+"""Camera rays: pixel directions, the rays of an image, and a bank of all training pixels.
+
+Rays use unit-z camera directions (the direction of pixel ``(u, v)`` is
+``((u - cx) / fx, (v - cy) / fy, 1)`` rotated to the world), so the ray parameter ``t`` is
+metric z-depth and rendered depth needs no conversion.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from csa_core.data.camera import Intrinsics
+from csa_core.data.scene import Frame
+
+
+def camera_directions(intr: Intrinsics, device: torch.device | str = "cpu") -> Tensor:
+    """Unit-z camera-frame directions of every pixel centre, (H * W, 3), row-major."""
+    v, u = torch.meshgrid(
+        torch.arange(intr.height, dtype=torch.float64),
+        torch.arange(intr.width, dtype=torch.float64),
+        indexing="ij",
+    )
+    d = torch.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, torch.ones_like(u)], dim=-1)
+    return d.reshape(-1, 3).to(device=device, dtype=torch.float32)
+
+
+def image_rays(
+    intr: Intrinsics, pose: np.ndarray, device: torch.device | str = "cpu"
+) -> tuple[Tensor, Tensor]:
+    """World origins and unit-z directions (H * W, 3) of every pixel of a camera at ``pose``."""
+    p = torch.as_tensor(np.asarray(pose, dtype=np.float64), dtype=torch.float32, device=device)
+    d = camera_directions(intr, device) @ p[:3, :3].T
+    return p[:3, 3].expand_as(d).contiguous(), d
+
+
+def frame_depth(frame: Frame) -> np.ndarray:
+    """The frame's depth in metres (H, W) float32, zeros where (or when) nothing was measured."""
+    if frame.depth is None:
+        return np.zeros(frame.color.shape[:2], np.float32)
+    return np.asarray(frame.depth, dtype=np.float32)
+
+
+class RayBank:
+    """All pixels of posed frames as flat tensors: colour, depth (0 = not measured), optional
+    labels (0 = ignored) and each pixel's frame. Pixel ``i`` is pixel ``i % (H * W)`` of frame
+    ``i // (H * W)``. ``frame_rows`` maps each frame to its row of per-frame parameters (the
+    model's colour corrections); by default frame ``k`` is row ``k``."""
+
+    def __init__(
+        self,
+        frames: Sequence[Frame],
+        intr: Intrinsics,
+        device: torch.device | str = "cpu",
+        label_folder: str | None = None,
+        frame_rows: Tensor | None = None,
+    ):
+        self.frames = list(frames)
+        self.device = torch.device(device)
+        self.hw = intr.width * intr.height
+        self.dirs_cam = camera_directions(intr, device)
+        poses = torch.as_tensor(
+            np.stack([np.asarray(f.pose, dtype=np.float64) for f in self.frames]),
+            dtype=torch.float32,
+            device=device,
+        )
+        self.rot = poses[:, :3, :3]
+        self.origin = poses[:, :3, 3]
+        self.rgb = torch.as_tensor(
+            np.stack([f.color for f in self.frames]).reshape(-1, 3), device=device
+        )
+        self.depth = torch.as_tensor(
+            np.stack([frame_depth(f) for f in self.frames]).reshape(-1), device=device
+        )
+        self.has_depth = bool((self.depth > 0).any())
+        self.frame_rows = frame_rows
+        self.labels: Tensor | None = None
+        if label_folder is not None:
+            self.set_labels({f.name: f.labels[label_folder] for f in self.frames})
+
+    @property
+    def count(self) -> int:
+        return int(self.rgb.shape[0])
+
+    def set_labels(self, labels: Mapping[str, np.ndarray]) -> None:
+        """Semantic targets ``{frame name: (H, W) NYU40 ids}`` for every frame of the bank."""
+        missing = [f.name for f in self.frames if f.name not in labels]
+        if missing:
+            raise KeyError(f"no labels for frame(s) {', '.join(missing[:5])}")
+        stack = np.stack([np.asarray(labels[f.name], dtype=np.uint8) for f in self.frames])
+        if stack.shape[1] * stack.shape[2] != self.hw:
+            raise ValueError(
+                f"labels are {stack.shape[2]}x{stack.shape[1]}, frames have {self.hw} pixels"
+            )
+        self.labels = torch.as_tensor(stack.reshape(-1), device=self.device)
+
+    def random_ids(self, n: int, generator: torch.Generator | None = None) -> Tensor:
+        """``n`` pixel ids drawn uniformly (with replacement) from all frames."""
+        return torch.randint(0, self.count, (n,), device=self.device, generator=generator)
+
+    def rays(self, ids: Tensor) -> tuple[Tensor, Tensor]:
+        """World origins and unit-z directions (N, 3) of pixels ``ids``."""
+        cam, pix = ids // self.hw, ids % self.hw
+        dirs = torch.einsum("nij,nj->ni", self.rot[cam], self.dirs_cam[pix])
+        return self.origin[cam], dirs
+
+    def batch(self, ids: Tensor) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+        """Rays of pixels ``ids`` and their targets: ``rgb`` in [0, 1], ``depth``, ``frame``
+        (row of per-frame parameters) and, when set, ``labels``."""
+        origins, dirs = self.rays(ids)
+        cam = ids // self.hw
+        target = {
+            "rgb": self.rgb[ids].float() / 255.0,
+            "depth": self.depth[ids],
+            "frame": cam if self.frame_rows is None else self.frame_rows[cam],
+        }
+        if self.labels is not None:
+            target["labels"] = self.labels[ids]
+        return origins, dirs, target

@@ -1,0 +1,88 @@
+"""The embedded executor (``CSA_EXECUTOR=embedded``, the default): jobs run one at a time in
+a thread of the API process, against its own database and artifact store.
+
+Nothing else needs to be started. A job whose lease this executor stops renewing (the API
+process was killed) is re-queued when the API starts again (``queue.recover_stale_jobs``),
+or failed with the reason after ``CSA_MAX_ATTEMPTS`` attempts; on a clean shutdown the
+running job is handed back to the queue without counting the attempt.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+
+from server.db.models import Job
+from server.executors.base import INTERRUPTED, Executor, run_job_function
+from server.jobs import queue
+from server.jobs.context import LocalJobContext
+from server.jobs.kinds import KINDS, runnable_kinds
+
+log = logging.getLogger(__name__)
+
+
+class EmbeddedExecutor(Executor):
+    mode = "embedded"
+
+    def __init__(self, services):
+        super().__init__(services)
+        self._ctx: LocalJobContext | None = None
+
+    def open(self) -> None:
+        if self.settings.torch_threads:
+            import torch
+
+            torch.set_num_threads(self.settings.torch_threads)
+
+    def current_job(self) -> int | None:
+        ctx = self._ctx
+        return ctx.job_id if ctx is not None else None
+
+    def on_leases(self, owned: set[int], cancel: set[int]) -> None:
+        ctx = self._ctx
+        if ctx is None:
+            return
+        if ctx.job_id not in owned:
+            ctx.lost.set()
+        elif ctx.job_id in cancel:
+            ctx.cancel_requested.set()
+
+    def step(self) -> bool:
+        return self.run_once()
+
+    def run_once(self) -> bool:
+        """Recover jobs of dead owners, then claim and run one job; returns whether one ran."""
+        self.recover()
+        kinds = runnable_kinds()
+        if not kinds:
+            return False
+        job = queue.claim_next(self.services.sessions, self.id, self.settings.lease_seconds, kinds)
+        if job is None:
+            return False
+        self._execute(job)
+        return True
+
+    def _execute(self, job: Job) -> None:
+        workdir = self.settings.resolved_work_dir / self.scratch_folder(job.id)
+        workdir.mkdir(parents=True, exist_ok=True)
+        ctx = LocalJobContext(self.services, job, self.id, workdir, self.stopping)
+        self._ctx = ctx
+        log.info("job %s (%s) started", job.id, job.kind)
+        try:
+            status, error = run_job_function(ctx, KINDS[job.kind].run)
+            if status == INTERRUPTED:
+                if not ctx.lost.is_set():
+                    queue.release_to_queue(self.services.sessions, job.id, self.id, error or "interrupted")
+                log.warning("job %s interrupted: %s", job.id, error)
+            elif status != queue.SUCCEEDED:
+                ctx.flush_logs()
+                self.end(job.id, status, error)
+            else:
+                log.info("job %s succeeded", job.id)
+        finally:
+            try:
+                ctx.flush_logs()
+            except Exception:  # noqa: BLE001
+                log.exception("could not write the log of job %s", job.id)
+            shutil.rmtree(workdir, ignore_errors=True)
+            self._ctx = None

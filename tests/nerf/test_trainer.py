@@ -1,0 +1,142 @@
+"""The one NeRF trainer: what fits and joint training share, and the ray bank it draws from."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from csa_core.adapt.nerf_training import NerfLabelTrainer
+from csa_core.nerf.fit import fit_semantic_nerf
+from csa_core.nerf.rays import RayBank, image_rays
+from csa_core.nerf.samplers import DepthGuidedSampler, OccupancySampler, ReferenceSampler
+from csa_core.nerf.trainer import NerfTrainer
+from tests.nerf.conftest import synthetic_scene, tiny_config
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return synthetic_scene(frames=6, size=(24, 16))
+
+
+@pytest.fixture
+def nerf(scene):
+    return fit_semantic_nerf(scene, "label-nyu40", tiny_config(steps=20), progress=False)[0]
+
+
+def test_ray_bank_rays_are_the_image_rays_of_their_frame(scene):
+    bank = RayBank(scene.train_frames, scene.intrinsics, label_folder="label-nyu40")
+    hw = scene.intrinsics.width * scene.intrinsics.height
+    assert bank.count == len(scene.train_frames) * hw and bank.has_depth
+    ids = torch.tensor([0, 5, hw + 7, 3 * hw - 1])
+    origins, dirs, target = bank.batch(ids)
+    for k, i in enumerate(ids.tolist()):
+        f = scene.train_frames[i // hw]
+        o, d = image_rays(scene.intrinsics, f.pose)
+        torch.testing.assert_close(origins[k], o[i % hw])
+        torch.testing.assert_close(dirs[k], d[i % hw])
+        assert int(target["frame"][k]) == i // hw
+        assert int(target["labels"][k]) == int(f.labels["label-nyu40"].reshape(-1)[i % hw])
+        assert float(target["depth"][k]) == pytest.approx(float(f.depth.reshape(-1)[i % hw]))
+    with pytest.raises(KeyError, match=scene.train_frames[0].name):
+        bank.set_labels({})
+
+
+def test_the_model_owns_its_parameter_groups_and_the_optimiser_uses_them(nerf, scene):
+    groups = nerf.parameter_groups()
+    tables = {id(p) for p in groups[0]["params"]}
+    assert id(nerf.field.encoding.table) in tables and id(nerf.field.semantic_table) in tables
+    assert groups[0]["weight_decay"] == 0.0
+    assert groups[1]["weight_decay"] == nerf.config.optim.weight_decay_mlp > 0
+    every = {id(p) for p in nerf.parameters()}
+    assert tables | {id(p) for p in groups[1]["params"]} == every
+    label = NerfLabelTrainer(nerf, scene)
+    decays = [g["weight_decay"] for g in label.trainer.optimizer.param_groups]
+    assert decays == [0.0, nerf.config.optim.weight_decay_mlp]
+
+
+def test_fit_and_joint_training_share_the_loop_with_the_free_space_term(nerf, scene):
+    """Joint training's NeRF steps use the fit's losses, free-space term included."""
+    assert nerf.config.loss.free_space > 0
+    trainer = NerfLabelTrainer(nerf, scene, rays_per_step=128)
+    trainer.set_labels({f.name: f.labels["label-nyu40"] for f in scene.train_frames})
+    terms = trainer.train(3)
+    assert {"color", "depth", "semantic", "free_space", "loss"} <= set(terms)
+    assert trainer.steps_done == 3
+    expected = sum(
+        w * terms[k]
+        for k, w in [("color", 1.0), ("depth", 0.1), ("semantic", 0.04), ("free_space", 1.0)]
+    )
+    assert terms["loss"] == pytest.approx(expected, rel=1e-5)
+    # Constant rate in joint training: a tenth of the fit's start.
+    lr = [g["lr"] for g in trainer.trainer.optimizer.param_groups]
+    assert lr == pytest.approx([nerf.config.optim.lr * nerf.config.optim.final_lr_fraction] * 2)
+
+
+def test_fit_learning_rate_decays_to_its_final_fraction(scene):
+    cfg = tiny_config(steps=10)
+    nerf = fit_semantic_nerf(scene, "label-nyu40", cfg, progress=False)[0]
+    trainer = NerfTrainer(nerf, RayBank(scene.train_frames, scene.intrinsics), schedule_steps=10)
+    trainer.train(10)
+    lr = trainer.optimizer.param_groups[0]["lr"]
+    assert lr == pytest.approx(cfg.optim.lr * cfg.optim.final_lr_fraction, rel=1e-6)
+
+
+def test_free_space_ramps_in_after_the_warm_up(nerf, scene):
+    trainer = NerfTrainer(
+        nerf, RayBank(scene.train_frames, scene.intrinsics), schedule_steps=10, free_space_warmup=4
+    )
+    scales = []
+    for _ in range(10):
+        scales.append(trainer.free_space_scale())
+        trainer.steps_done += 1
+    assert scales == pytest.approx([0, 0, 0, 0, 0, 0.25, 0.5, 0.75, 1, 1])
+
+
+def test_semantic_steps_move_only_the_semantic_head(nerf, scene):
+    before = {n: p.detach().clone() for n, p in nerf.named_parameters()}
+    trainer = NerfLabelTrainer(nerf, scene, rays_per_step=128)
+    trainer.set_labels({f.name: f.labels["label-nyu40"] for f in scene.train_frames})
+    first = trainer.train_semantics(1)
+    last = trainer.train_semantics(30)
+    assert last < first
+    moved = {n for n, p in nerf.named_parameters() if not torch.equal(p, before[n])}
+    assert moved and all(
+        n.startswith(("field.semantic_table", "field.semantic_mlp")) for n in moved
+    )
+
+
+def test_trainer_is_deterministic_for_a_seed(scene):
+    runs = []
+    for _ in range(2):
+        nerf = fit_semantic_nerf(scene, "label-nyu40", tiny_config(steps=2), progress=False)[0]
+        bank = RayBank(scene.train_frames, scene.intrinsics, label_folder="label-nyu40")
+        NerfTrainer(nerf, bank, schedule_steps=5, seed=3).train(5)
+        runs.append(nerf.field.state_dict())
+    for name, p in runs[0].items():
+        assert torch.equal(p, runs[1][name]), name
+
+
+def test_samplers_come_from_the_config_not_from_the_caller(scene):
+    fast = fit_semantic_nerf(scene, "label-nyu40", tiny_config(steps=2), progress=False)[0]
+    assert isinstance(fast.train_sampler(has_depth=True), DepthGuidedSampler)
+    assert isinstance(fast.train_sampler(has_depth=False), ReferenceSampler)
+    guided = fast.render_sampler(with_depth=True)
+    assert isinstance(guided, DepthGuidedSampler) and isinstance(guided.fallback, OccupancySampler)
+    assert isinstance(fast.render_sampler(with_depth=False), OccupancySampler)
+    reference = tiny_config(steps=2)
+    reference.sampler.train, reference.sampler.render = "reference", "reference"
+    reference.sampler.render_depth_guided = False
+    ref = fit_semantic_nerf(scene, "label-nyu40", reference, progress=False)[0]
+    assert isinstance(ref.render_sampler(with_depth=True), ReferenceSampler)
+    with pytest.raises(ValueError, match="unknown sampler"):
+        ref.make_sampler("sideways")
+
+
+def test_label_trainer_without_labels_trains_colour_and_depth(nerf, scene):
+    trainer = NerfLabelTrainer(nerf, scene, rays_per_step=64)
+    assert trainer.labels is None
+    terms = trainer.train(1)
+    assert "semantic" not in terms and np.isfinite(terms["loss"])
+    with pytest.raises(ValueError, match="set_labels"):
+        trainer.train_semantics(1)
