@@ -4,8 +4,9 @@ On badly exposed scenes or scenes without depth, joint training can drive the Ne
 network towards one class: each supervises the other with ever more uniform labels. Three
 signals catch it without ground truth, each measured against the previous model's
 predictions on the same views: the entropy of the labels' class histogram, the share of
-their dominant class, and their agreement with the predictions (adaptation should refine
-them, not replace them). Fixed bars set on one family of rooms misfire on another (a real
+their dominant class, and their agreement with the predictions beyond chance (adaptation
+should refine them, not replace them; a noisy network's predictions agree little with any
+fusion of them, so raw agreement would penalise exactly the scenes fusion helps most). Fixed bars set on one family of rooms misfire on another (a real
 room whose views are 86% wall), so no bar is absolute.
 """
 
@@ -68,15 +69,36 @@ def dominant_fraction(labels: LabelMaps) -> tuple[int, float]:
 
 def agreement(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> float:
     """Fraction of pixels, known in both, where two label sets (keyed by frame) agree."""
+    return agreement_kappa(a, b)[0]
+
+
+def agreement_kappa(
+    a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]
+) -> tuple[float, float]:
+    """Agreement of two label sets (keyed by frame) over the pixels known in both, and its
+    chance-corrected version, Cohen's kappa = (p_o - p_e) / (1 - p_e), where p_e is the
+    agreement two independent maps with the same class frequencies would reach: 0 for labels
+    unrelated to the others (or collapsed to one class), 1 for identical ones. NaN, NaN
+    without common known pixels."""
     same = total = 0
+    count_a = np.zeros(NUM_CLASSES + 1, dtype=np.int64)
+    count_b = np.zeros(NUM_CLASSES + 1, dtype=np.int64)
     for name, x in a.items():
         if name not in b:
             continue
         y = b[name]
         known = (x > 0) & (y > 0)
-        same += int((x[known] == y[known]).sum())
+        xs, ys = np.asarray(x[known], np.int64), np.asarray(y[known], np.int64)
+        same += int((xs == ys).sum())
         total += int(known.sum())
-    return same / total if total else float("nan")
+        count_a += np.bincount(xs, minlength=NUM_CLASSES + 1)[: NUM_CLASSES + 1]
+        count_b += np.bincount(ys, minlength=NUM_CLASSES + 1)[: NUM_CLASSES + 1]
+    if not total:
+        return float("nan"), float("nan")
+    observed = same / total
+    chance = float((count_a / total) @ (count_b / total))
+    kappa = 1.0 if chance >= 1.0 else (observed - chance) / (1.0 - chance)
+    return observed, kappa
 
 
 @dataclass
@@ -89,6 +111,7 @@ class CollapseReport:
     dominant_fraction: float
     dominant_limit: float  # NaN without the previous model's predictions to compare with
     agreement: float
+    kappa: float  # the agreement beyond chance (Cohen's kappa)
     collapsed: bool
     reasons: list[str] = field(default_factory=list)
 
@@ -108,8 +131,8 @@ def detect_collapse(
 
     With ``previous``, every bar is relative to the predictions (``CollapseConfig``): the
     labels' entropy against the predictions' entropy, their dominant class against the
-    predictions' dominant class, and their agreement with the predictions; the prior plays no
-    part. A scene's own class mix is so never a collapse: a room whose views are mostly wall,
+    predictions' dominant class, and their agreement with the predictions beyond what their
+    class frequencies give by chance (:func:`agreement_kappa`); the prior plays no part. A scene's own class mix is so never a collapse: a room whose views are mostly wall,
     seen so by the network, passes; labels that turned most of what the network saw as other
     classes into one class do not. Without ``previous`` the one bar is the entropy against
     the prior: a network that sees one class where the pre-training rooms showed many.
@@ -120,11 +143,11 @@ def detect_collapse(
     reasons = []
     if previous is None:
         reference = float(prior_entropy) if prior_entropy is not None else float("nan")
-        agree = float("nan")
+        agree = kappa = float("nan")
         dominant_limit = float("nan")
     else:
         reference = label_entropy(previous)
-        agree = agreement(labels, previous)
+        agree, kappa = agreement_kappa(labels, previous)
         _, previous_frac = dominant_fraction(previous)
         dominant_limit = previous_frac + cfg.max_dominant_gain * (1.0 - previous_frac)
     if math.isfinite(reference) and entropy < cfg.min_entropy_ratio * reference:
@@ -136,9 +159,10 @@ def detect_collapse(
             f"class {cls} covers {100 * frac:.0f}% of the pixels (limit {100 * dominant_limit:.0f}%: "
             f"the predictions' dominant class plus {100 * cfg.max_dominant_gain:.0f}% of the rest)"
         )
-    if math.isfinite(agree) and agree < cfg.min_agreement:
+    if math.isfinite(kappa) and kappa < cfg.min_kappa:
         reasons.append(
-            f"agrees with the previous model on {100 * agree:.0f}% of the pixels (limit {100 * cfg.min_agreement:.0f}%)"
+            f"agrees with the previous model on {100 * agree:.0f}% of the pixels, kappa "
+            f"{kappa:.2f} beyond chance (limit {cfg.min_kappa:g})"
         )
     return CollapseReport(
         entropy=entropy,
@@ -147,6 +171,7 @@ def detect_collapse(
         dominant_fraction=frac,
         dominant_limit=dominant_limit,
         agreement=agree,
+        kappa=kappa,
         collapsed=bool(reasons),
         reasons=reasons,
     )

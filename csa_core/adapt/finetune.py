@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, default_collate
 
 from csa_core.adapt.collapse import GuardDecision, detect_collapse, guard
 from csa_core.adapt.config import AdaptConfig, NerfBudget
@@ -92,8 +92,7 @@ class SegFinetuner:
 
     def batches(self, primary: int, secondary: int) -> MixedBatchSampler:
         """The index batches of the next epoch (``primary`` current-or-buffer items, then
-        ``secondary`` pre-training items); seeds the epoch's augmentation draws. The caller
-        that steps through them itself counts the epoch in ``epochs_done``."""
+        ``secondary`` pre-training items); seeds the epoch's augmentation draws."""
         r = self.config.replay
         per_batch = self.config.seg.batch_size
         pre = min(r.pretrain_per_batch, per_batch - 1) if secondary else 0
@@ -106,6 +105,15 @@ class SegFinetuner:
         )
         torch.manual_seed(self.config.seg.seed + self.epochs_done)  # augmentation draws
         return sampler
+
+    def step(self, dataset: SegmentationDataset, batch: Sequence[int]) -> float:
+        """One Adam step on the items ``batch`` of ``dataset`` (one of :meth:`batches`);
+        returns its loss. Call :meth:`end_epoch` after the epoch's last batch."""
+        images, labels = default_collate([dataset[i] for i in batch])
+        return self.trainer.step(images, labels)
+
+    def end_epoch(self) -> None:
+        self.epochs_done += 1
 
     def epoch(self, dataset: SegmentationDataset, primary: int, secondary: int) -> float:
         """One pass; returns the mean loss."""
@@ -226,12 +234,12 @@ def finetune_on_labels(
     return losses
 
 
-def step_nerf_budget(config: AdaptConfig, scene: Scene) -> NerfBudget:
+def step_nerf_budget(config: AdaptConfig, scene: Scene, mode: str | None = None) -> NerfBudget:
     """``config.nerf`` with the fit before the pseudo-labels in steps for ``scene``: its
-    epochs (:meth:`~csa_core.adapt.config.NerfBudget.fit_steps`, in ``config.mode``) times
-    the scene's training views. :func:`~csa_core.adapt.pseudo_labels.nerf_config` of it is
-    the NeRF config the step fits."""
-    steps = config.nerf.fit_steps(config.mode, len(scene.train_frames))
+    epochs (:meth:`~csa_core.adapt.config.NerfBudget.fit_steps`, in ``mode``, default
+    ``config.mode``) times the scene's training views.
+    :func:`~csa_core.adapt.pseudo_labels.nerf_config` of it is the NeRF config the step fits."""
+    steps = config.nerf.fit_steps(mode or config.mode, len(scene.train_frames))
     return dataclasses.replace(config.nerf, prefit_steps=steps)
 
 

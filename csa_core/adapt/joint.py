@@ -30,7 +30,6 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-from torch.utils.data import default_collate
 
 from csa_core.adapt.config import AdaptConfig
 from csa_core.adapt.finetune import (
@@ -255,10 +254,9 @@ def _per_batch(
                 nerf_trainer.train(len(current))
                 seconds["joint_nerf"] += time.perf_counter() - t_nerf
             t = time.perf_counter()
-            images_batch, labels_batch = default_collate([dataset[i] for i in batch])
-            losses.append(tuner.trainer.step(images_batch, labels_batch))
+            losses.append(tuner.step(dataset, batch))
             seconds["joint_seg"] += time.perf_counter() - t
-        tuner.epochs_done += 1
+        tuner.end_epoch()
         loss = float(np.mean(losses)) if losses else float("nan")
         result.history.append(
             {

@@ -86,9 +86,6 @@ class ContinualMethod:
     comparison of methods. Call ``step`` through :func:`csa_core.adapt.step.continual_step`."""
 
     name: ClassVar[str] = ""
-    # Whether a step ends with AdaBN on the scene (with ``config.adabn``), so that the run
-    # pools the adapted scenes' statistics (csa_core.adapt.bn_memory).
-    reestimates_batchnorm: ClassVar[bool] = True
 
     def __init__(self, config: AdaptConfig):
         self.config = config

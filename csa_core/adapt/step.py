@@ -81,7 +81,7 @@ class ContinualState:
         runner = make_method(method, config)
         pretrain, prior = pretrain_context(pretrain_scenes, config)
         memory = None
-        if pools_batchnorm(config, runner):
+        if pools_batchnorm(config):
             memory = batchnorm if batchnorm is not None else BatchNormMemory()
         return cls(runner, bank, memory, pretrain, prior)
 
@@ -94,10 +94,10 @@ class ContinualState:
         return out
 
 
-def pools_batchnorm(config: AdaptConfig, method: ContinualMethod) -> bool:
+def pools_batchnorm(config: AdaptConfig) -> bool:
     """Whether a run keeps per-scene BatchNorm statistics and runs with their mixture: with
-    AdaBN and ``config.pool_batchnorm``, for a method whose steps end with AdaBN."""
-    return bool(config.adabn and config.pool_batchnorm and method.reestimates_batchnorm)
+    AdaBN (which every method's step ends with) and ``config.pool_batchnorm``."""
+    return bool(config.adabn and config.pool_batchnorm)
 
 
 def continual_step(

@@ -62,6 +62,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="working size WxH (default: the size the network was trained at)",
     )
+    p.add_argument(
+        "--adabn",
+        choices=("on", "off"),
+        default=None,
+        help="re-estimate BatchNorm statistics on each scene's camera images, for any method "
+        "(default: the preset's, on)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of every random step (default 0)")
     p.add_argument(
         "--device", default=None, help="cpu, cuda, cuda:1 ... (default: cuda if available)"
@@ -143,6 +150,8 @@ def run_adapt(args: argparse.Namespace) -> int:
     pretrain_scenes = [read_scene(p, size=size) for p in args.pretrain_scenes]
     config = seeded(preset(args.preset), args.seed)
     config.mode = args.mode or config.mode
+    if args.adabn is not None:
+        config.adabn = args.adabn == "on"
     config.seg.device = args.device
     args.out.mkdir(parents=True, exist_ok=True)
     checkpoint = args.out / "model.safetensors"

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 
 from csa_core.adapt.baselines.mapping import mapping_pseudo_labels
+from csa_core.adapt.finetune import step_nerf_budget
 from csa_core.adapt.pseudo_labels import label_miou, make_pseudo_labels
 from csa_core.experiments.inputs import ExperimentInputs
 from csa_core.experiments.report import ExperimentReport, markdown_table, mean_std, pct
@@ -31,7 +32,9 @@ def run(inputs: ExperimentInputs) -> ExperimentReport:
         config = inputs.config(seed)
         for scene in inputs.scenes:
             t0 = time.perf_counter()
-            _, pseudo = make_pseudo_labels(model, scene, config.nerf, config.seg.device)
+            # The NeRF of the fine-tuning modes: the whole fit before the pseudo-labels.
+            budget = step_nerf_budget(config, scene, mode="gi_nl")
+            _, pseudo = make_pseudo_labels(model, scene, budget, config.seg.device)
             mapped = mapping_pseudo_labels(scene, pseudo.predictions)
             values = {
                 "network": label_miou(pseudo.predictions, scene),

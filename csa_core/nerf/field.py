@@ -100,9 +100,9 @@ class SemanticField(nn.Module):
         """Parameters that shape density (the hash table and the density MLP)."""
         return [*self.encoding.parameters(), *self.density_mlp.parameters()]
 
-    def _heads_input(
-        self, x: Tensor, semantic_features: bool
-    ) -> tuple[Tensor, Tensor, Tensor | None]:
+    def features(self, x: Tensor, semantic_features: bool) -> tuple[Tensor, Tensor, Tensor | None]:
+        """Density ``(N,)``, geometry features and (with ``semantic_features``) the semantic
+        table's features at ``x``, the cell corners found once for both tables."""
         if semantic_features and self.semantic_table is not None:
             enc, sem = self.encoding(x, self.semantic_table, self.semantic_levels)
         else:
@@ -116,13 +116,14 @@ class SemanticField(nn.Module):
         sigma = trunc_exp(h[:, 0] - 1.0) * inside  # bias -1: start nearly empty
         return sigma, h[:, 1:]
 
-    def _semantic_head(self, geo: Tensor, sem: Tensor | None) -> Tensor:
+    def semantic_head(self, geo: Tensor, sem: Tensor | None) -> Tensor:
+        """Semantic logits from (detached) geometry features and semantic-table features."""
         sem_in = geo.detach() if sem is None else torch.cat([geo.detach(), sem], dim=-1)
         return self.semantic_mlp(sem_in)
 
     def density(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """Density ``(N,)`` (per metre of world space) and geometry features ``(N, geo)`` at ``x``."""
-        sigma, geo, _ = self._heads_input(x, semantic_features=False)
+        sigma, geo, _ = self.features(x, semantic_features=False)
         return sigma, geo
 
     def semantics(self, x: Tensor) -> tuple[Tensor, Tensor]:
@@ -132,22 +133,13 @@ class SemanticField(nn.Module):
         if self.semantic_table is None:
             with torch.no_grad():
                 sigma, geo = self.density(x)
-            return sigma, self._semantic_head(geo, None)
+            return sigma, self.semantic_head(geo, None)
         rows, weights = self.encoding.corners(x)
         with torch.no_grad():
             sigma, geo = self._density_head(x, self.encoding.interpolate(rows, weights))
         levels = self.semantic_levels
         sem = self.encoding.interpolate(rows[:levels], weights[:levels], self.semantic_table)
-        return sigma, self._semantic_head(geo, sem)
-
-    def semantic_logits(self, x: Tensor, geo: Tensor) -> Tensor:
-        """Semantic logits ``(N, num_classes)`` at ``x`` given the geometry features ``geo``
-        there (from :meth:`density`): finds the corners of the semantic levels only."""
-        if self.semantic_table is None:
-            return self._semantic_head(geo, None)
-        rows, weights = self.encoding.corners(x, self.semantic_levels)
-        sem = self.encoding.interpolate(rows, weights, self.semantic_table)
-        return self._semantic_head(geo, sem)
+        return sigma, self.semantic_head(geo, sem)
 
     def color(self, geo: Tensor, dirs: Tensor) -> Tensor:
         """Colour ``(N, 3)`` in [0, 1] from geometry features and unit view directions."""
@@ -163,12 +155,12 @@ class SemanticField(nn.Module):
         ``semantic_logits`` (N, num_classes) computed from detached geometry features.
         ``dirs`` may be ``None`` without ``color`` (labels do not depend on the view).
         """
-        sigma, geo, sem = self._heads_input(x, semantic_features=semantics)
+        sigma, geo, sem = self.features(x, semantic_features=semantics)
         out = {"sigma": sigma}
         if color:
             if dirs is None:
                 raise ValueError("SemanticField: colour needs view directions")
             out["rgb"] = self.color(geo, dirs)
         if semantics:
-            out["semantic_logits"] = self._semantic_head(geo, sem)
+            out["semantic_logits"] = self.semantic_head(geo, sem)
         return out

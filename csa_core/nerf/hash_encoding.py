@@ -220,6 +220,8 @@ class HashEncoding(nn.Module):
         """Features ``(N, L * F)`` of ``table`` (default: this encoding's) at corners from
         :meth:`corners` (``L`` levels, the table laid out like this one's first ``L`` levels)."""
         table = self.table if table is None else table
+        if rows.shape[-1] == 0:
+            return table.new_zeros(0, rows.shape[0] * table.shape[1])
         out = _HashGather.apply(table, rows, weights.to(table.dtype))
         return out.transpose(0, 1).reshape(rows.shape[-1], -1)
 

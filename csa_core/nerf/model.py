@@ -217,13 +217,14 @@ class SemanticNerf(nn.Module):
         min_weight: float = 1e-3,
     ) -> dict[str, Tensor]:
         """Inference version of :meth:`render_samples` (same outputs but ``weights``): the
-        density everywhere, then colour and semantics only at the samples whose weight is at
-        least ``min_weight`` times the largest of their ray (what is dropped are the faint
-        tails in front of and behind a surface)."""
+        encoding (both tables, one corner computation) and the density everywhere, then the
+        colour and semantic MLPs only at the samples whose weight is at least ``min_weight``
+        times the largest of their ray (what is dropped are the faint tails in front of and
+        behind a surface)."""
         ri = samples.ray_indices
         t = samples.t_mids
         x = self.box.to_unit(origins[ri] + dirs[ri] * t[:, None])
-        sigma, geo = self.field.density(x)
+        sigma, geo, sem = self.field.features(x, semantic_features=semantics)
         weights, _, _ = render_weights(sigma, samples, dirs.norm(dim=-1))
         result = {
             "depth": accumulate_along_rays(weights, t[:, None], samples).squeeze(-1),
@@ -242,7 +243,7 @@ class SemanticNerf(nn.Module):
             rgb = accumulate_along_rays(w, _blocked(self.field.color, g, view), kept)
             result["rgb"] = rgb if self.appearance is None else self.appearance(rgb, appearance)
         if semantics:
-            logits = _blocked(self.field.semantic_logits, x[keep], g)
+            logits = _blocked(self.field.semantic_head, g, None if sem is None else sem[keep])
             result["semantics"] = normalized_class_probabilities(w, logits, kept)
         return result
 
@@ -371,9 +372,12 @@ class SemanticNerf(nn.Module):
         return seen
 
 
-def _blocked(fn, *inputs: Tensor, block: int = INFERENCE_BLOCK) -> Tensor:
+def _blocked(fn, *inputs: Tensor | None, block: int = INFERENCE_BLOCK) -> Tensor:
     """``fn(*inputs)`` on blocks of ``block`` rows (inference: keeps the work cache-sized)."""
     n = inputs[0].shape[0]
     if n <= block:
         return fn(*inputs)
-    return torch.cat([fn(*(t[i : i + block] for t in inputs)) for i in range(0, n, block)])
+    parts = [
+        fn(*(None if t is None else t[i : i + block] for t in inputs)) for i in range(0, n, block)
+    ]
+    return torch.cat(parts)

@@ -60,7 +60,7 @@ from server.jobs.kinds import KINDS, JobKind, runnable_kinds
 
 log = logging.getLogger(__name__)
 
-_RESOURCES_EVERY = 5.0  # seconds between reads of the cluster's resources
+_RESOURCES_EVERY = 1.0  # seconds between reads of the cluster's resources (nodes come and go)
 
 
 class JobChannel:
@@ -404,7 +404,10 @@ class RayExecutor(Executor):
         settings = JobSettings(device=self.settings.device, torch_threads=self.settings.torch_threads, job_log_lines=self.settings.job_log_lines)
         spec = JobSpec(job_id, kind_name, params, attempt, token, kind.run, settings)
         resources = self.resources(kind)
-        ref = self._task.options(name=f"csa-{kind_name}-{job_id}", max_retries=0, **resources).remote(spec, inputs.table_rows(), files, self._channel)
+        # SPREAD: jobs go to different nodes when they can, rather than next to their inputs on
+        # the API's node (each job is heavy, and its inputs are small next to its work).
+        options = {"name": f"csa-{kind_name}-{job_id}", "max_retries": 0, "scheduling_strategy": "SPREAD", **resources}
+        ref = self._task.options(**options).remote(spec, inputs.table_rows(), files, self._channel)
         self._attempts[token] = _Attempt(job_id, kind_name, token, ref, time.monotonic())
         wants = ", ".join(f"{k.removeprefix('num_')}={v:g}" for k, v in resources.items())
         self._log(job_id, [("INFO", f"attempt {attempt}: submitted to the Ray cluster ({wants}) with {len(files)} input file(s)")])

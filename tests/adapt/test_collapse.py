@@ -11,6 +11,7 @@ import pytest
 import csa_core.adapt.finetune as finetune
 from csa_core.adapt.collapse import (
     agreement,
+    agreement_kappa,
     class_histogram,
     detect_collapse,
     dominant_fraction,
@@ -33,6 +34,27 @@ def test_entropy_dominance_and_agreement_on_known_maps():
     a = {"x": np.array([[1, 2, 0, 4]], np.uint8)}
     b = {"x": np.array([[1, 3, 5, 4]], np.uint8)}
     assert agreement(a, b) == pytest.approx(2 / 3)
+    # Beyond chance: pixels 1, 2, 4 known in both; a has classes 1, 2, 4 and b 1, 3, 4 once
+    # each, so chance agreement is 2/9 and kappa = (2/3 - 2/9) / (1 - 2/9) = 4/7.
+    assert agreement_kappa(a, b) == pytest.approx((2 / 3, 4 / 7))
+    # Labels collapsed to one class agree with the predictions only by chance.
+    predictions = {"x": np.array([[1, 1, 2, 3, 1, 2]], np.uint8)}
+    assert agreement_kappa({"x": np.full((1, 6), 1, np.uint8)}, predictions)[1] == 0.0
+
+
+def test_a_fusion_of_noisy_predictions_is_no_collapse():
+    """Near-random predictions agree little with any consistent labelling of the room; what
+    matters is agreement beyond chance (a regression: the guard rejected every NeRF of a
+    network trained for one epoch, which agreed with its predictions on 29% of the pixels)."""
+    rng = np.random.default_rng(0)
+    truth = {str(i): rng.integers(1, 11, size=(30, 40)).astype(np.uint8) for i in range(4)}
+    noisy = {
+        k: np.where(rng.random(v.shape) < 0.75, rng.integers(1, 41, v.shape), v).astype(np.uint8)
+        for k, v in truth.items()
+    }
+    report = detect_collapse(truth, noisy)
+    assert report.agreement < 0.35 and report.kappa > 0.2
+    assert not report.collapsed, report.reasons
 
 
 def test_detector_flags_one_class_labels_and_passes_faithful_ones(target_scenes):
@@ -45,7 +67,7 @@ def test_detector_flags_one_class_labels_and_passes_faithful_ones(target_scenes)
     assert len(report.reasons) >= 2
     # A strict agreement limit alone flags labels that replaced the predictions.
     shuffled = {k: np.roll(v, 7, axis=1) for k, v in truth.items()}
-    strict = detect_collapse(shuffled, truth, CollapseConfig(min_agreement=0.9))
+    strict = detect_collapse(shuffled, truth, CollapseConfig(min_kappa=0.9))
     assert strict.collapsed and any("agrees" in r for r in strict.reasons)
 
 

@@ -28,7 +28,7 @@ def test_joint_step_reports_nerf_steps_rounds_and_the_end(pretrained, target_sce
     fractions = [f for _, f in calls]
     assert fractions == sorted(fractions) and 0.0 < fractions[0] and fractions[-1] == 1.0
     messages = [m for m, _ in calls]
-    assert messages[0].startswith("NeRF step 1/40")
+    assert messages[0].startswith(f"NeRF step 1/{config.nerf.prefit_steps}")
     rounds = [m.split("  ")[0] for m in messages if m.startswith("joint round")]
     # inside every round: after the network's epochs, after the NeRF's steps, at its end
     assert rounds == [
@@ -54,5 +54,7 @@ def test_an_exception_stops_the_fine_tuning(pretrained, target_scenes) -> None:
             raise stop
 
     with pytest.raises(Stop) as raised:
-        adapt_one_step(copy.deepcopy(pretrained), target_scenes[0], config, on_progress=cancel_at_first_epoch)
+        adapt_one_step(
+            copy.deepcopy(pretrained), target_scenes[0], config, on_progress=cancel_at_first_epoch
+        )
     assert raised.value is stop and len(epochs) == 1 and epochs[0].startswith("epoch 1/20")

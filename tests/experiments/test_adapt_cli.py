@@ -88,3 +88,20 @@ def test_a_sequence_needs_ground_truth(workspace, tmp_path, capsys):
     argv = ["adapt", "--model", workspace.model, workspace.scenes[1], workspace.unlabelled]
     code, _, stderr = csa(capsys, *argv, "--out", tmp_path / "o", "--preset", "tiny")
     assert code == 2 and "validation views need ground-truth labels" in stderr
+
+
+def test_adabn_switch_and_the_paper_networks_note(workspace, tmp_path, capsys):
+    """``--adabn off`` reaches any method (CoTTA here), and ``--preset paper`` says when the
+    checkpoint is not the paper's network."""
+    out = tmp_path / "cotta"
+    argv = ["adapt", "--model", workspace.model, workspace.scenes[0], "--out", out]
+    code, _, stderr = csa(capsys, *argv, "--preset", "paper", "--method", "cotta", "--adabn", "off")
+    assert code == 0
+    assert "note: the paper preset's network is deeplabv3_resnet101 at 320x240" in stderr
+    assert "lraspp_mobilenet_v3_large at 48x36" in stderr
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["config"]["adabn"] is False and doc["config"]["preset"] == "paper"
+    assert doc["config"]["method_settings"]["scales"] == [0.5, 0.75, 1.0, 1.25, 1.5, 1.75]
+    code, _, stderr = csa(capsys, *argv, "--preset", "tiny", "--method", "cotta", "--overwrite")
+    assert code == 0 and "note:" not in stderr
+    assert json.loads((out / "results.json").read_text())["config"]["adabn"] is True

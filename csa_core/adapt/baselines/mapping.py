@@ -83,8 +83,9 @@ def render_map_labels(
     voxel_map: VoxelSemanticMap, scene: Scene, names: Sequence[str], read: str = "raycast"
 ) -> dict[str, np.ndarray]:
     """Pseudo-labels of the named frames read from the map. ``read="raycast"`` (Frey et al.):
-    each pixel's ray is cast from the frame's pose (:meth:`VoxelSemanticMap.raycast`), 0 only
-    where it meets no labelled voxel, so pixels the sensor missed are labelled too.
+    each pixel's ray is cast from the frame's pose to the zero crossing of the map's TSDF
+    (:meth:`VoxelSemanticMap.raycast`) and takes the class votes there, 0 only where it meets
+    no surface (or no votes lie near it), so pixels the sensor missed are labelled too.
     ``read="depth"``: the voxel at each pixel's own measured surface point, 0 where the frame
     has no depth (the older read-back, kept for comparison)."""
     if read not in READ_BACKS:

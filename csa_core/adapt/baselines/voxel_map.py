@@ -5,20 +5,22 @@ Each frame is fused into one grid of cells, as the voxblox-style semantic map of
 (RA-L 2022) does:
 
 - **geometry**: a projective TSDF. Every voxel near a measured surface point along the
-  pixel's ray (within ``truncation`` voxels) takes the distance, along the ray through its
-  centre, from the centre to the surface the frame measured there (depth interpolated
-  between neighbouring pixels of one surface), clipped at the truncation and averaged over
-  frames, one unit of weight per observation. Voxels farther than the truncation behind the
-  surface are left alone (the frame cannot see them).
+  pixel's ray (within ``truncation`` voxels), and the face neighbours of those, takes the
+  distance, along the ray through its centre, from the centre to the surface the frame
+  measured there (depth interpolated between neighbouring pixels of one surface), clipped
+  at the truncation. Frames are averaged with one unit of weight per observation, less for
+  observations behind the surface (voxblox's drop-off); voxels farther than the truncation
+  behind the surface are left alone (the frame cannot see them).
 - **semantics**: each pixel's label (or class probabilities) is added to the scores of the
   voxel its surface point falls in.
 
 Reading the map for a view casts every pixel's ray through the TSDF: the ray stops where the
 trilinearly interpolated distance first turns from positive to non-positive (the surface,
-located by linear interpolation between samples half a voxel apart) and takes the class of the
-voxel holding that point (or the summed scores of its neighbours within ``search_radius``
-cells when it has none). A pixel is unknown only where its ray meets no surface. The view's
-own depth is not used, so a pixel the sensor missed still gets the label the map knows.
+located by linear interpolation between samples half a voxel apart), and the class votes of
+the eight voxels around that point, weighted trilinearly like the distances, give its label
+(or, where none of them has votes, those within ``search_radius`` cells). A pixel is unknown
+only where its ray meets no surface. The view's own depth is not used, so a pixel the sensor
+missed still gets the label the map knows.
 
 Everything is vectorised over pixels: voxels are integer cells packed into one int64 key,
 kept sorted; a ray march skips empty space by an exact voxel traversal to the first cell next
@@ -52,26 +54,28 @@ _COARSE = 4
 _SURFACE_SAMPLES = 8
 _RAY_CHUNK = 1 << 15  # rays marched together (bounds the march's memory to some 100 MB)
 _PIXEL_CHUNK = 1 << 15  # pixels whose truncation bands are gathered together when fusing
+# Packed-key differences to a cell's six face neighbours and itself.
+_FACE_DELTAS = np.array(
+    [0, 1, -1, 1 << _BITS, -(1 << _BITS), 1 << (2 * _BITS), -(1 << (2 * _BITS))]
+)
 
 
 @dataclass(frozen=True)
 class VoxelMapConfig:
     """``voxel_size``: voxel edge in metres. ``truncation``: the TSDF's truncation distance,
     in voxels (3: the band of voxels a frame updates reaches 15 cm either side of its surface
-    at 5 cm). ``search_radius``: a ray whose surface point lies in a voxel without scores
-    takes the summed scores of the voxels within this many cells (0: it stays unknown); the
-    depth read-back (:meth:`VoxelSemanticMap.labels_at_depth`) does the same. ``max_range``:
-    how far (metres along the ray) a pixel's ray is followed through the map."""
+    at 5 cm; voxblox's usual 2 to 4 voxels, and the best of 2, 3 and 4 on the synthetic
+    rooms). ``search_radius``: a ray whose surface point has no votes in the eight voxels
+    around it takes the summed scores of the voxels within this many cells of the one holding
+    it (0: it stays unknown); the depth read-back (:meth:`VoxelSemanticMap.labels_at_depth`)
+    does the same for a voxel without votes. ``max_range``: how far (metres along the ray) a
+    pixel's ray is followed through the map."""
 
     voxel_size: float = PAPER_VOXEL_SIZE
     truncation: float = 3.0
     search_radius: int = 1
     num_classes: int = NUM_CLASSES
     max_range: float = 10.0
-    geometry_subdivision: int = 1
-    truncation_in_geometry: bool = False
-    behind: float = 0.0
-    dropoff: bool = False
 
     def __post_init__(self) -> None:
         if not self.voxel_size > 0:
@@ -143,13 +147,7 @@ class VoxelSemanticMap:
     @property
     def truncation_m(self) -> float:
         """The TSDF's truncation distance in metres."""
-        if self.config.truncation_in_geometry:
-            return self.config.truncation * self.geometry_size
         return self.config.truncation * self.config.voxel_size
-
-    @property
-    def geometry_size(self) -> float:
-        return self.config.voxel_size / self.config.geometry_subdivision
 
     @property
     def num_voxels(self) -> int:
@@ -158,7 +156,8 @@ class VoxelSemanticMap:
 
     @property
     def num_tsdf_voxels(self) -> int:
-        """Voxels with a signed distance (every voxel within the truncation of a surface)."""
+        """Voxels with a signed distance (those within the truncation of a surface a frame
+        saw, and their face neighbours)."""
         return int(self.tsdf_keys.size)
 
     @property
@@ -227,13 +226,14 @@ class VoxelSemanticMap:
 
     def _frame_distances(
         self, depth: np.ndarray, valid: np.ndarray, pose: np.ndarray, intrinsics: Intrinsics
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One frame's projective TSDF: sorted keys of the voxels within the truncation of its
-        surface points along their rays, and each voxel's distance (metres along the ray
-        through its centre, clipped to the truncation)."""
+        surface points along their rays (and of their face neighbours) that the frame sees,
+        each one's distance (metres along the ray through its centre, clipped to the
+        truncation) and the weight of that observation."""
         depth = np.asarray(depth, dtype=np.float32)
         pose = np.asarray(pose, dtype=np.float64)
-        size, trunc = self.geometry_size, self.truncation_m
+        size, trunc = self.voxel_size, self.truncation_m
         if not valid.any():
             return np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, np.float32)
         origins, dirs = pixel_rays(intrinsics, pose)
@@ -248,8 +248,13 @@ class VoxelSemanticMap:
         for i in range(0, along.size, _PIXEL_CHUNK):
             t = np.maximum(along[i : i + _PIXEL_CHUNK, None] + offsets, 0.0)
             points = origin + t[..., None] * unit[i : i + _PIXEL_CHUNK, None, :]
-            parts.append(np.unique(pack_keys(voxel_coords(points.reshape(-1, 3), size))))
-        keys = np.unique(np.concatenate(parts))
+            cells = pack_keys(voxel_coords(points.reshape(-1, 3), size)).reshape(t.shape)
+            # Consecutive samples along a ray often share a cell: drop those before sorting.
+            parts.append(cells[:, 1:][cells[:, 1:] != cells[:, :-1]])
+            parts.append(cells[:, 0])
+        # ... and their six neighbours, so that the space beside a surface's edge, which no ray
+        # of the band crosses, is observed as free where the frame sees past the edge.
+        keys = np.unique((np.unique(np.concatenate(parts))[:, None] + _FACE_DELTAS).ravel())
         # Each candidate's centre, seen from the frame: the measured depth where it projects.
         centres = (unpack_keys(keys) + 0.5) * size
         cam = (centres - pose[:3, 3]) @ pose[:3, :3]
@@ -257,8 +262,10 @@ class VoxelSemanticMap:
         with np.errstate(divide="ignore", invalid="ignore"):
             u = intrinsics.fx * cam[:, 0] / z + intrinsics.cx
             v = intrinsics.fy * cam[:, 1] / z + intrinsics.cy
-        seen = (z > 0) & (u > -0.5) & (u < depth.shape[1] - 0.5)
-        seen &= (v > -0.5) & (v < depth.shape[0] - 0.5)
+        # Centres up to two pixels outside the image take the border's depth, so that the
+        # voxels around the rays of the image's edge all have a distance.
+        seen = (z > 0) & (u > -2.5) & (u < depth.shape[1] + 1.5)
+        seen &= (v > -2.5) & (v < depth.shape[0] + 1.5)
         keys, z, u, v = keys[seen], z[seen], u[seen], v[seen]
         measured, ok = _depth_at(depth, valid, u, v, jump=trunc)
         ray = np.sqrt(
@@ -267,29 +274,28 @@ class VoxelSemanticMap:
             + 1.0
         )
         sdf = (measured - z) * ray
-        behind = self.config.behind * size if self.config.behind else trunc
-        keep = ok & (sdf >= -behind)
-        w = np.ones(keep.sum(), np.float32)
-        if self.config.dropoff:
-            sk = sdf[keep]
-            w = np.where(sk < -size, (behind + sk) / max(behind - size, 1e-9), 1.0).astype(np.float32)
-            w = np.maximum(w, 1e-3)
-        return keys[keep], np.minimum(sdf[keep], trunc).astype(np.float32), w
+        # Observations behind the surface count less the deeper they lie (they may be free
+        # space the frame cannot see): full weight to one voxel behind, none at the truncation.
+        keep = ok & (sdf > -trunc)
+        sdf = sdf[keep]
+        weight = np.minimum((trunc + sdf) / (trunc - size), 1.0).astype(np.float32)
+        return keys[keep], np.minimum(sdf, trunc).astype(np.float32), weight
 
-    def _fuse_distances(self, keys: np.ndarray, sdf: np.ndarray, wn: np.ndarray) -> None:
-        """Average one frame's distances (sorted unique ``keys``) into the TSDF, weight 1 each."""
+    def _fuse_distances(self, keys: np.ndarray, sdf: np.ndarray, weight: np.ndarray) -> None:
+        """Average one frame's distances (sorted unique ``keys``) into the TSDF with their
+        observation weights."""
         if keys.size == 0:
             return
         rows = _rows_of(self.tsdf_keys, keys)
         seen = rows >= 0
         r = rows[seen]
-        w = self.weights[r]
-        self.tsdf[r] = (self.tsdf[r] * w + sdf[seen] * wn[seen]) / (w + wn[seen])
-        self.weights[r] = w + wn[seen]
+        old, new = self.weights[r], weight[seen]
+        self.tsdf[r] = (self.tsdf[r] * old + sdf[seen] * new) / (old + new)
+        self.weights[r] = old + new
         at = np.searchsorted(self.tsdf_keys, keys[~seen])
         self.tsdf_keys = np.insert(self.tsdf_keys, at, keys[~seen])
         self.tsdf = np.insert(self.tsdf, at, sdf[~seen])
-        self.weights = np.insert(self.weights, at, wn[~seen])
+        self.weights = np.insert(self.weights, at, weight[~seen])
 
     def _add(self, keys: np.ndarray, scores: np.ndarray) -> None:
         if keys.size == 0:
@@ -307,9 +313,10 @@ class VoxelSemanticMap:
 
     def raycast(self, pose: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
         """Cast every pixel's ray of a camera at ``pose`` through the map: (H, W) uint8 NYU40
-        labels of the voxel holding the surface each ray meets first (0 where it meets none
-        within ``max_range``, or no scores are near that point) and (H, W) float32 z-depth of
-        that surface point (0 where the ray meets no surface)."""
+        labels of the surface point each ray meets first, the TSDF's first zero crossing (0
+        where it meets none within ``max_range``, or no votes lie near that point; see
+        :meth:`_scores_near`), and (H, W) float32 z-depth of that point (0 where the ray meets
+        no surface)."""
         h, w = intrinsics.height, intrinsics.width
         labels = np.zeros(h * w, dtype=np.uint8)
         depth = np.zeros(h * w, dtype=np.float32)
@@ -323,30 +330,16 @@ class VoxelSemanticMap:
         unit = dirs / norm[:, None]
         t = np.concatenate(
             [
-                surface.first_crossing(origin, unit[i : i + _RAY_CHUNK], self.config.max_range, self._accept())
+                surface.first_crossing(origin, unit[i : i + _RAY_CHUNK], self.config.max_range)
                 for i in range(0, unit.shape[0], _RAY_CHUNK)
             ]
         )
         rays = np.flatnonzero(np.isfinite(t))
-        points = origin + t[rays, None] * unit[rays]
-        scores = self._scores_at(pack_keys(voxel_coords(points, self.voxel_size)))
+        scores = self._scores_near(surface, origin + t[rays, None] * unit[rays])
         found = scores.max(axis=1) > 0
         labels[rays] = np.where(found, scores.argmax(axis=1) + 1, UNKNOWN).astype(np.uint8)
         depth[rays] = (t[rays] / norm[rays]).astype(np.float32)
         return labels.reshape(h, w), depth.reshape(h, w)
-
-    def _accept(self):
-        import os
-        mode = os.environ.get("ACCEPT", "")
-        if not mode:
-            return None
-        r = int(mode)
-        offs = _cube_offsets(r)
-        def acc(p):
-            cells = voxel_coords(p, self.voxel_size)
-            keys = pack_keys((cells[:, None, :] + offs[None]).reshape(-1, 3))
-            return (self.lookup(keys) >= 0).reshape(-1, offs.shape[0]).any(axis=1)
-        return acc
 
     def labels_for_pose(self, pose: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
         """(H, W) uint8 NYU40 labels of a camera at ``pose``, read by ray casting (:meth:`raycast`)."""
@@ -367,10 +360,25 @@ class VoxelSemanticMap:
 
     def _surface_index(self) -> _Surface | None:
         if self._surface is None and (self.tsdf <= 0).any():
-            self._surface = _Surface(
-                unpack_keys(self.tsdf_keys), self.tsdf, self.tsdf_keys, self.geometry_size
-            )
+            self._surface = _Surface(self)
         return self._surface
+
+    def _scores_near(self, surface: _Surface, points: np.ndarray) -> np.ndarray:
+        """Scores (N, C) at world points (N, 3): those of the eight voxels whose centres
+        surround each point, weighted trilinearly (the class votes are read like the
+        distances); where none of them has scores, those of the voxel holding the point (see
+        :meth:`_scores_at`)."""
+        scores = np.zeros((points.shape[0], self.config.num_classes), dtype=np.float32)
+        if surface.rows is None:
+            return scores
+        base, weights = _trilinear(points, self.voxel_size)
+        rows = surface.rows.cube(base)
+        for k in range(8):
+            hit = rows[:, k] >= 0
+            scores[hit] += weights[hit, k, None] * self.scores[rows[hit, k]]
+        none = ~(scores.max(axis=1) > 0)
+        scores[none] = self._scores_at(pack_keys(voxel_coords(points[none], self.voxel_size)))
+        return scores
 
     def _scores_at(self, keys: np.ndarray) -> np.ndarray:
         """Scores (N, C) of the voxels ``keys``; where one has none, the summed scores of the
@@ -443,13 +451,13 @@ def _cube_offsets(radius: int) -> np.ndarray:
     return np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def _box(cells: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int], np.ndarray, bool]:
+def _box(cells: np.ndarray) -> tuple[np.ndarray, tuple[int, ...], np.ndarray, bool]:
     """The bounding box of ``cells`` padded by one cell: its lowest cell, shape, flat strides
     and whether a dense grid over it fits in ``MAX_DENSE_CELLS``."""
     lo = cells.min(axis=0) - 1
     shape = tuple(int(v) for v in cells.max(axis=0) + 2 - lo)
     strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
-    return lo, shape, strides, math.prod(shape) <= MAX_DENSE_CELLS  # type: ignore[return-value]
+    return lo, shape, strides, math.prod(shape) <= MAX_DENSE_CELLS
 
 
 class _CellSet:
@@ -486,61 +494,82 @@ class _CellSet:
 
 
 class _CellValues:
-    """float32 values at integer cells, NaN at every other cell: a dense grid over the cells'
-    bounding box when it fits in ``MAX_DENSE_CELLS``, else the sorted packed keys."""
+    """Values at integer cells, ``fill`` at every other cell: a dense grid over the cells'
+    bounding box (padded by one cell) when it fits in ``MAX_DENSE_CELLS``, else the sorted
+    packed keys."""
 
-    def __init__(self, cells: np.ndarray, values: np.ndarray, keys: np.ndarray):
+    _CORNERS = np.array(list(np.ndindex(2, 2, 2)), dtype=np.int64)  # (8, 3)
+
+    def __init__(self, keys: np.ndarray, values: np.ndarray, fill: float | int):
+        cells = unpack_keys(keys)
         self.lo, shape, self.strides, dense = _box(cells)
         self.hi = self.lo + np.array(shape)
+        self.fill = fill
         self.grid: np.ndarray | None = None
         self.keys, self.values = keys, values
         if dense:
-            self.grid = np.full(math.prod(shape), np.nan, dtype=np.float32)
+            self.grid = np.full(math.prod(shape), fill, dtype=values.dtype)
             self.grid[(cells - self.lo) @ self.strides] = values
 
-    def at(self, cells: np.ndarray) -> np.ndarray:
-        """Values (N,) at integer cells (N, 3)."""
-        inside = ((cells >= self.lo) & (cells < self.hi)).all(axis=1)
-        out = np.full(cells.shape[0], np.nan, dtype=np.float32)
+    def cube(self, base: np.ndarray) -> np.ndarray:
+        """Values (N, 8) at the cells ``base + corner`` (N, 3) for the corners of a unit cube,
+        in ``np.ndindex(2, 2, 2)`` order."""
+        out = np.full((base.shape[0], 8), self.fill, dtype=self.values.dtype)
+        # A cube reaching out of the box holds only padding and cells outside: all ``fill``.
+        inside = ((base >= self.lo) & (base + 1 < self.hi)).all(axis=1)
         if self.grid is not None:
-            out[inside] = self.grid[(cells[inside] - self.lo) @ self.strides]
+            flat = (base[inside] - self.lo) @ self.strides
+            out[inside] = self.grid[flat[:, None] + self._CORNERS @ self.strides]
             return out
-        rows = _rows_of(self.keys, pack_keys(cells[inside]))
-        out[np.flatnonzero(inside)[rows >= 0]] = self.values[rows[rows >= 0]]
+        cells = base[inside, None, :] + self._CORNERS
+        rows = _rows_of(self.keys, pack_keys(cells.reshape(-1, 3))).reshape(-1, 8)
+        out[inside] = np.where(rows >= 0, self.values[np.maximum(rows, 0)], self.fill)
         return out
 
 
-class _Surface:
-    """The TSDF as a ray caster: trilinear samples of the distances, and which cells a ray
-    must reach before a sample can be non-positive (those within one cell of a voxel with a
-    non-positive distance: the eight voxels a trilinear sample mixes all lie that close to the
-    cell holding it)."""
+def _trilinear(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """For world points (N, 3): the lowest of the eight voxels whose centres surround each
+    (N, 3) and the eight trilinear weights (N, 8), in ``np.ndindex(2, 2, 2)`` order."""
+    g = points / voxel_size - 0.5
+    base = np.floor(g)
+    f = (g - base).astype(np.float32)
+    wx, wy, wz = (np.stack([1.0 - f[:, a], f[:, a]], axis=1) for a in range(3))
+    weights = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
+    return base.astype(np.int64), weights
 
-    def __init__(self, cells: np.ndarray, tsdf: np.ndarray, keys: np.ndarray, voxel_size: float):
-        self.voxel_size = voxel_size
-        self.values = _CellValues(cells, tsdf, keys)
-        self.index = _RayIndex(cells[tsdf <= 0], voxel_size, radius=1)
+
+class _Surface:
+    """The map as a ray caster: trilinear samples of the distances, which cells a ray must
+    reach before a sample can be non-positive (those within one cell of a voxel with a
+    non-positive distance: the eight voxels a trilinear sample mixes all lie that close to the
+    cell holding it), and the rows of the voxels with scores."""
+
+    def __init__(self, voxel_map: VoxelSemanticMap):
+        self.voxel_size = voxel_map.voxel_size
+        keys, tsdf = voxel_map.tsdf_keys, voxel_map.tsdf
+        self.distances = _CellValues(keys, tsdf, fill=np.nan)
+        self.index = _RayIndex(unpack_keys(keys[tsdf <= 0]), self.voxel_size, radius=1)
+        self.rows = (
+            _CellValues(voxel_map.keys, np.arange(voxel_map.num_voxels, dtype=np.int32), fill=-1)
+            if voxel_map.num_voxels
+            else None
+        )
 
     def sample(self, points: np.ndarray) -> np.ndarray:
         """Trilinear interpolation (N,) of the distances at world points (N, 3) between the
-        centres of the eight voxels around each, over those with a distance (NaN: none)."""
-        g = points / self.voxel_size - 0.5
-        base = np.floor(g)
-        frac = g - base
-        base = base.astype(np.int64)
-        total = np.zeros(points.shape[0])
-        weight = np.zeros(points.shape[0])
-        for corner in np.ndindex(2, 2, 2):
-            c = np.array(corner)
-            value = self.values.at(base + c)
-            w = np.prod(np.where(c == 1, frac, 1.0 - frac), axis=1)
-            seen = np.isfinite(value)
-            total += np.where(seen, w * value, 0.0)
-            weight += np.where(seen, w, 0.0)
+        centres of the eight voxels around each, over those with a distance (NaN: none).
+        Voxels without one are unobserved space (free space a frame saw has a distance: the
+        band's neighbours are fused too, see :meth:`VoxelSemanticMap._frame_distances`)."""
+        base, weights = _trilinear(points, self.voxel_size)
+        values = self.distances.cube(base)
+        seen = ~np.isnan(values)
+        weights = np.where(seen, weights, 0.0)
+        total = np.einsum("ij,ij->i", weights, np.where(seen, values, 0.0))
+        wsum = weights.sum(axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(weight > 1e-6, total / weight, np.nan)
+            return np.where(wsum > 1e-6, total / wsum, np.nan)
 
-    def first_crossing(self, origin: np.ndarray, dirs: np.ndarray, max_range: float, accept=None) -> np.ndarray:
+    def first_crossing(self, origin: np.ndarray, dirs: np.ndarray, max_range: float) -> np.ndarray:
         """Distance (N,) along unit rays ``dirs`` (N, 3) from ``origin`` to the first point
         where the interpolated TSDF turns non-positive (NaN where none within ``max_range``):
         linear between the last positive sample and the first non-positive one, or that
@@ -557,16 +586,9 @@ class _Surface:
             t = t_in[hit, None] + offsets
             f = self.sample((o + t[..., None] * d[rays, None, :]).reshape(-1, 3)).reshape(t.shape)
             before, after = f[:, :-1], f[:, 1:]
-            # Where the ray passes into non-positive distances: from a positive sample (the
-            # zero crossing, linear between the two) or from unobserved space (the sample).
             enter = (after <= 0) & ~(before <= 0) & (t[:, 1:] <= end[:, None])
             with np.errstate(divide="ignore", invalid="ignore"):
-                shift = np.where(before > 0, step * after / (before - after), 0.0)
-            t_cross = t[:, 1:] + shift
-            if accept is not None:
-                rr, kk = np.nonzero(enter)
-                ok = accept(o + t_cross[rr, kk, None] * d[rays[rr]])
-                enter[rr[~ok], kk[~ok]] = False
+                t_cross = t[:, 1:] + np.where(before > 0, step * after / (before - after), 0.0)
             found = enter.any(axis=1)
             k = enter.argmax(axis=1)
             out[rays[found]] = t_cross[found, k[found]]
@@ -588,7 +610,7 @@ class _RayIndex:
         if self.empty:
             return
         self.fine = _CellSet(cells)
-        self.coarse = _CellSet(np.unique(np.floor_divide(cells, _COARSE), axis=0))
+        self.coarse = _CellSet(np.floor_divide(cells, _COARSE))  # repeats are harmless
         self.lo = self.fine.lo * voxel_size
         self.hi = self.fine.hi * voxel_size
 
