@@ -113,19 +113,24 @@ def label_miou(
 
 
 def render_at_frames(
-    nerf: SemanticNerf, frames: Sequence[Frame], intrinsics: Intrinsics
+    nerf: SemanticNerf, frames: Sequence[Frame], intrinsics: Intrinsics, color: bool = True
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """NeRF images and labels at the frames' poses, several views per forward pass.
 
     The frames' sensor depth goes along: where the NeRF's config renders views with depth
     depth-guided (``SamplerConfig.render_depth_guided``, the fast preset), samples are placed
     in the band around it instead of marching the whole ray (rays without depth still march);
-    the reference preset renders with its own sampler.
+    the reference preset renders with its own sampler. ``color=False`` renders labels only
+    (the images dict is then empty), which keeps views with depth in the band alone.
     """
     views = render_frames(
-        nerf, [(f.name, f.pose) for f in frames], intrinsics, depths=[f.depth for f in frames]
+        nerf,
+        [(f.name, f.pose) for f in frames],
+        intrinsics,
+        depths=[f.depth for f in frames],
+        color=color,
     )
-    images = {v.name: v.color for v in views}
+    images = {v.name: v.color for v in views if v.color is not None}
     labels = {v.name: v.labels for v in views}
     return images, labels
 

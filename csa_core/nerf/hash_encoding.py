@@ -137,7 +137,7 @@ class HashEncoding(nn.Module):
     def corners(self, x: Tensor, levels: int | None = None) -> tuple[Tensor, Tensor]:
         """Table rows and trilinear weights of the 8 cell corners, each ``(L, 8, N)``, of every
         level or of the first ``levels`` (compiled with ``HashEncodingConfig.compile``)."""
-        if self.cfg.compile and _compiled_corners() is not None:
+        if self.cfg.compile and x.shape[0] > 0 and _compiled_corners() is not None:
             try:
                 return _compiled_corners()(self, x, levels)
             except Exception as e:  # noqa: BLE001 - any compiler failure: stay correct, eagerly
@@ -184,7 +184,7 @@ class HashEncoding(nn.Module):
             )
             hashed &= self._hash_mask
             hashed += self._offsets[nd:levels].view(-1, 1, 1, 1, 1)
-        return rows.reshape(levels, 8, -1), weights.reshape(levels, 8, -1)
+        return rows.reshape(levels, 8, n), weights.reshape(levels, 8, n)  # n, not -1: n may be 0
 
     def level_rows(self, levels: int) -> int:
         """Number of table rows used by the first ``levels`` levels (their blocks come first)."""

@@ -270,7 +270,28 @@ class SemanticNerf(nn.Module):
         """Render rays for inference (no autograd), in chunks of rays. ``sampler`` defaults to
         :meth:`render_sampler` (depth-guided where ``depth`` (R,) is given and the config
         says so); ``appearance`` is a training frame whose colour correction applies
-        (``None``: average); without ``color`` only depth, opacity and semantics are made."""
+        (``None``: average); without ``color`` only depth, opacity and semantics are made.
+
+        Depth guidance places samples in the measured depth band only, which suits the class
+        distributions (normalised over each ray's weights) but not colour: whatever opacity
+        the field has outside the band is missing from the composite, and a partly fitted
+        field's image comes out dark. So with ``color`` the default sampler renders colour,
+        depth and opacity with the ``render`` sampler (as for a view without depth) and only
+        the semantics in the band; without ``color`` everything comes from the band (depth
+        and opacity then describe the band, not the whole ray)."""
+        if (
+            sampler is None
+            and color
+            and depth is not None
+            and self.config.sampler.render_depth_guided
+        ):
+            out = self.render_rays(
+                origins, dirs, semantics=False, chunk=chunk, appearance=appearance
+            )
+            if semantics:
+                band = self.render_rays(origins, dirs, depth=depth, chunk=chunk, color=False)
+                out["semantics"] = band["semantics"]
+            return out
         if sampler is None:
             sampler = self.render_sampler(with_depth=depth is not None)
         elif isinstance(sampler, str):

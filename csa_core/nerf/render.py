@@ -206,7 +206,10 @@ def render_frames(
                 semantics=semantics,
                 appearance=appearance,
                 color=color,
-                chunk=max(rays_per_pass, nerf.config.render_chunk) if with_depth else None,
+                # Band-only samples are few per ray: bigger chunks (colour marches whole rays).
+                chunk=max(rays_per_pass, nerf.config.render_chunk)
+                if with_depth and not color
+                else None,
             )
             for k, i in enumerate(group):
                 part = {key: v[k * hw : (k + 1) * hw] for key, v in out.items()}

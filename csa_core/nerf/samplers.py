@@ -200,6 +200,7 @@ def sample_band(
 def merge_samples(parts: list[tuple[Tensor, RaySamples]], num_rays: int) -> RaySamples:
     """One packed ``RaySamples`` of ``num_rays`` rays from samplings of disjoint ray subsets,
     each given as (the subset's ray ids, its samples); each ray's samples stay in ``t`` order."""
+    device = parts[0][0].device if parts else torch.device("cpu")
     parts = [(ids, s) for ids, s in parts if len(s) > 0]
     if len(parts) == 1 and parts[0][1].per_ray is not None:
         ids, s = parts[0]
@@ -208,7 +209,7 @@ def merge_samples(parts: list[tuple[Tensor, RaySamples]], num_rays: int) -> RayS
         ):
             return s
     if not parts:
-        empty = torch.zeros(0)
+        empty = torch.zeros(0, device=device)
         return RaySamples(empty.long(), empty, empty, num_rays)
     ri = torch.cat([ids[s.ray_indices] for ids, s in parts])
     starts = torch.cat([s.t_starts for _, s in parts])

@@ -153,3 +153,27 @@ def test_compiled_corners_agree_with_the_eager_reference():
         torch.testing.assert_close(weights, ref_weights, atol=1e-7, rtol=0)
         r, w = enc.corners(x, 3)
         assert torch.equal(r, ref_rows[:3])
+
+
+def test_zero_positions_give_empty_features_with_gradients():
+    """A batch without samples (e.g. every ray skipped by an empty occupancy grid) encodes to
+    empty features, through the corners and both tables, and still backpropagates."""
+    from csa_core.nerf.config import FieldConfig
+    from csa_core.nerf.field import SemanticField
+
+    enc = HashEncoding(HashEncodingConfig(num_levels=4, log2_table_size=10, finest_resolution=64))
+    x = torch.zeros(0, 3)
+    rows, weights = enc.corners(x)
+    assert rows.shape == weights.shape == (4, 8, 0)
+    assert enc.interpolate(rows, weights).shape == (0, enc.out_dim)
+    extra = torch.zeros(enc.level_rows(2), 3)
+    feats, more = enc(x, extra, 2)
+    assert feats.shape == (0, enc.out_dim) and more.shape == (0, 6)
+
+    field = SemanticField(FieldConfig(encoding=enc.cfg), generator=torch.Generator().manual_seed(0))
+    sigma, logits = field.semantics(x)
+    assert sigma.shape == (0,) and logits.shape[0] == 0
+    out = field(x, torch.zeros(0, 3))
+    assert out["rgb"].shape == (0, 3) and out["semantic_logits"].shape == logits.shape
+    (logits.sum() + out["rgb"].sum()).backward()
+    assert all(p.grad is None or not p.grad.any() for p in field.parameters())
