@@ -16,9 +16,10 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DataError
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from csa_core.errors import CSAInputError
+from server.asgi import TrackingSend
 
 log = logging.getLogger(__name__)
 
@@ -89,18 +90,11 @@ class UnhandledErrorMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        started = False
-
-        async def tracking_send(message: Message) -> None:
-            nonlocal started
-            if message["type"] == "http.response.start":
-                started = True
-            await send(message)
-
+        tracking_send = TrackingSend(send)
         try:
             await self.app(scope, receive, tracking_send)
         except Exception as exc:
-            if started or isinstance(exc, self.passthrough):
+            if tracking_send.started or isinstance(exc, self.passthrough):
                 raise
             log.exception("unhandled error in %s %s", scope.get("method"), scope.get("path"))
             await _internal_error(exc)(scope, receive, send)

@@ -121,9 +121,11 @@ class Executor:
     def close(self) -> None:
         """Called in the executor's thread when it stops: hand running jobs back."""
 
-    def on_leases(self, owned: set[int], cancel: set[int]) -> None:
+    def on_leases(self, owned: set[int], cancel: set[int], since: float) -> None:
         """From the heartbeat thread: the jobs this executor still owns, and which of them
-        were cancelled by a client."""
+        were cancelled by a client, as the database said after ``since`` (``time.monotonic()``
+        before the renewal began). A job claimed after ``since`` may be missing from ``owned``
+        without being lost: the next beat tells."""
 
     # -- registration, heartbeat, recovery -----------------------------------------------
 
@@ -154,9 +156,10 @@ class Executor:
     def _heartbeat_loop(self) -> None:
         while not self._beat_stop.wait(self.settings.heartbeat_seconds):
             try:
+                since = time.monotonic()
                 owned, cancel = queue.renew_leases(self.services.sessions, self.id, self.settings.lease_seconds)
                 self._beat(self.current_job())
-                self.on_leases(owned, cancel)
+                self.on_leases(owned, cancel, since)
             except Exception:  # noqa: BLE001 - try again at the next beat
                 log.exception("heartbeat of executor %s failed", self.id)
 

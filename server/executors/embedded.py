@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+import time
 
 from server.db.models import Job
 from server.executors.base import INTERRUPTED, Executor, run_job_function
@@ -27,6 +28,7 @@ class EmbeddedExecutor(Executor):
     def __init__(self, services):
         super().__init__(services)
         self._ctx: LocalJobContext | None = None
+        self._claimed_at = float("inf")
 
     def open(self) -> None:
         if self.settings.torch_threads:
@@ -38,10 +40,10 @@ class EmbeddedExecutor(Executor):
         ctx = self._ctx
         return ctx.job_id if ctx is not None else None
 
-    def on_leases(self, owned: set[int], cancel: set[int]) -> None:
-        ctx = self._ctx
-        if ctx is None:
-            return
+    def on_leases(self, owned: set[int], cancel: set[int], since: float) -> None:
+        ctx, claimed_at = self._ctx, self._claimed_at
+        if ctx is None or claimed_at > since:
+            return  # no job, or one claimed after the renewal began: the next beat tells
         if ctx.job_id not in owned:
             ctx.lost.set()
         elif ctx.job_id in cancel:
@@ -59,6 +61,7 @@ class EmbeddedExecutor(Executor):
         job = queue.claim_next(self.services.sessions, self.id, self.settings.lease_seconds, kinds)
         if job is None:
             return False
+        self._claimed_at = time.monotonic()  # the claim is committed by now
         self._execute(job)
         return True
 
@@ -71,8 +74,10 @@ class EmbeddedExecutor(Executor):
         try:
             status, error = run_job_function(ctx, KINDS[job.kind].run)
             if status == INTERRUPTED:
-                if not ctx.lost.is_set():
-                    queue.release_to_queue(self.services.sessions, job.id, self.id, error or "interrupted")
+                # Also when it was lost: if the database still gives it to this executor (the
+                # loss was only seen, not real), it must not stay running with nobody on it.
+                # A job another owner took is left alone (release_to_queue checks the owner).
+                queue.release_to_queue(self.services.sessions, job.id, self.id, error or "interrupted")
                 log.warning("job %s interrupted: %s", job.id, error)
             elif status != queue.SUCCEEDED:
                 ctx.flush_logs()

@@ -46,6 +46,7 @@ from server.executors.base import INTERRUPTED, Executor
 from server.executors.bundle import JobInputs
 from server.executors.remote import (
     CANCEL,
+    CHANNEL_TIMEOUT_S,
     LOST,
     RUN,
     JobSettings,
@@ -121,6 +122,7 @@ class RayExecutor(Executor):
         self._last_recover = -1e9
         self._owns_ray = False
         self._channel: Any = None
+        self._channel_unavailable_since: float | None = None
         self._task: Any = None
 
     # -- connection ----------------------------------------------------------------------
@@ -160,7 +162,9 @@ class RayExecutor(Executor):
         import ray
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-        near_api = NodeAffinitySchedulingStrategy(node_id=ray.get_runtime_context().get_node_id(), soft=True)
+        # Hard affinity: a soft one moves the actor to another node whenever the API's node
+        # looks busy (a task holding its CPUs), and then losing that node loses the channel.
+        near_api = NodeAffinitySchedulingStrategy(node_id=ray.get_runtime_context().get_node_id(), soft=False)
         channel = ray.remote(JobChannel).options(num_cpus=0, scheduling_strategy=near_api, max_restarts=0).remote()
         ray.get(channel.drain.remote(), timeout=120)  # it answers before any task reports to it
         return channel
@@ -186,9 +190,9 @@ class RayExecutor(Executor):
 
     # -- the loop ------------------------------------------------------------------------
 
-    def on_leases(self, owned: set[int], cancel: set[int]) -> None:
+    def on_leases(self, owned: set[int], cancel: set[int], since: float) -> None:
         with self._lock:
-            self._leases = (time.monotonic(), owned, cancel)
+            self._leases = (since, owned, cancel)
 
     def step(self) -> bool:
         import ray
@@ -214,6 +218,20 @@ class RayExecutor(Executor):
 
         try:
             events = ray.get(self._channel.drain.remote(), timeout=60)
+            self._channel_unavailable_since = None
+        except ray.exceptions.ActorUnavailableError as e:
+            # Not dead (that is ActorDiedError): a loaded node can drop a connection for a
+            # moment. Tasks wait as long for it (remote.CHANNEL_TIMEOUT_S) before they stop.
+            now = time.monotonic()
+            if self._channel_unavailable_since is None:
+                self._channel_unavailable_since = now
+            if now - self._channel_unavailable_since < CHANNEL_TIMEOUT_S:
+                log.warning("the job channel did not answer (%s); asking again", type(e).__name__)
+                return
+            log.warning("the job channel has not answered for %.0f s; starting a new one", CHANNEL_TIMEOUT_S)
+            self._channel_unavailable_since = None
+            self._channel = self._new_channel()
+            return
         except ray.exceptions.RayActorError as e:
             # Running tasks hold the old channel: their next report fails, they stop, and
             # their jobs go back to the queue as lost attempts.

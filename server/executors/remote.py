@@ -30,6 +30,7 @@ import os
 import pickle
 import shutil
 import tempfile
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
@@ -106,12 +107,23 @@ class RemoteJobContext(JobContext):
     def _send(self, progress: float | None, message: str | None, logs: list[tuple[str, str]]) -> None:
         import ray
 
-        try:
-            state = ray.get(self.channel.report.remote(self.spec.token, progress, message, logs), timeout=CHANNEL_TIMEOUT_S)
-        except (ray.exceptions.RayActorError, ray.exceptions.GetTimeoutError) as e:
-            log.warning("job %s: the API node's channel does not answer (%s); stopping", self.job_id, type(e).__name__)
-            self.lost.set()
-            return
+        deadline = time.monotonic() + CHANNEL_TIMEOUT_S
+        while True:
+            try:
+                state = ray.get(self.channel.report.remote(self.spec.token, progress, message, logs), timeout=CHANNEL_TIMEOUT_S)
+                break
+            except ray.exceptions.ActorUnavailableError as e:
+                # Unavailable is not dead: a loaded node can miss a connection for a moment.
+                # Ask again until the deadline (a repeated report may repeat log lines).
+                if time.monotonic() > deadline:
+                    log.warning("job %s: the API node's channel has not answered for %.0f s (%s); stopping", self.job_id, CHANNEL_TIMEOUT_S, type(e).__name__)
+                    self.lost.set()
+                    return
+                time.sleep(1.0)
+            except (ray.exceptions.RayActorError, ray.exceptions.GetTimeoutError) as e:
+                log.warning("job %s: the API node's channel does not answer (%s); stopping", self.job_id, type(e).__name__)
+                self.lost.set()
+                return
         if state == CANCEL:
             self.cancel_requested.set()
         elif state == LOST:

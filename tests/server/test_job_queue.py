@@ -181,3 +181,43 @@ def test_heartbeats_keep_a_long_job_alive(services: Services, counting_kind) -> 
         worker.stop(timeout=10)
     final = job(services, j)
     assert final.status == "succeeded" and final.attempts == 1
+
+
+def one_kind(monkeypatch, name: str, run) -> str:
+    monkeypatch.setitem(KINDS, name, JobKind(name, "test job", EvaluateParams, (), lambda s, p, j: ({}, None), run))
+    return name
+
+
+def test_a_renewal_that_began_before_the_claim_does_not_lose_the_job(services: Services, monkeypatch) -> None:
+    """The heartbeat thread renews leases while the executor thread claims a job: a renewal
+    that began before the claim does not list the job, and must not count as its loss (on a
+    loaded machine this once stranded a job as running with nobody on it)."""
+    worker = Worker(services)
+    worker._register()
+    renewal_began = time.monotonic()
+
+    def run(ctx: JobContext) -> None:
+        worker.on_leases(set(), set(), renewal_began)  # its answer arrives after the claim
+        ctx.progress(0.5, "half way", force=True)
+        ctx.complete(lambda s: {"done": True})
+
+    j = add_job(services, kind=one_kind(monkeypatch, "race", run))
+    assert worker.run_once()
+    assert job(services, j).status == "succeeded" and job(services, j).result == {"done": True}
+
+
+def test_a_job_seen_as_lost_but_still_owned_goes_back_to_the_queue(services: Services, monkeypatch) -> None:
+    """If the executor believes it lost a job the database still gives it, the job is handed
+    back rather than left running forever (its lease would be renewed by every beat)."""
+    worker = Worker(services)
+    worker._register()
+
+    def run(ctx: JobContext) -> None:
+        worker.on_leases(set(), set(), time.monotonic())  # a renewal after the claim, without the job
+        ctx.progress(0.5, "half way", force=True)  # raises JobInterrupted
+        ctx.complete(lambda s: {"done": True})
+
+    j = add_job(services, kind=one_kind(monkeypatch, "seen_lost", run))
+    assert worker.run_once()
+    back = job(services, j)
+    assert back.status == "queued" and back.worker_id is None and back.attempts == 0 and back.result is None
