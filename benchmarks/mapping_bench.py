@@ -34,10 +34,10 @@ from csa_core.adapt.baselines.mapping import (
     render_map_labels,
 )
 from csa_core.adapt.baselines.voxel_map import VoxelMapConfig
+from csa_core.data.label_noise import corrupt_labels
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.data.synth import NOISY_FOLDER, degrade_scene, generate_scene, parse_size
 from csa_core.eval import ConfusionMatrix
-from csa_core.nerf.label_noise import corrupt_labels
 from csa_core.seg.models import build_model
 
 VARIANTS = ("clean", "hard")

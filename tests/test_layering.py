@@ -2,7 +2,10 @@
 
 The service adds ``csa serve`` through an entry point (see ``server/cli.py``);
 nothing in ``csa_core`` names ``server`` or ``client`` in an import, and importing every
-module of the package leaves neither (nor the web stack) in ``sys.modules``."""
+module of the package leaves neither (nor the web stack) in ``sys.modules``.
+Inside ``csa_core``, the data layer (``csa_core.data``) is the bottom: it imports none of the
+packages built on it (``csa_core.nerf``, ``csa_core.seg``, ``csa_core.adapt``, ...), only
+itself and the shared top-level modules (``csa_core.errors``, ``csa_core.atomic_io``, ...)."""
 
 from __future__ import annotations
 
@@ -66,3 +69,17 @@ print(json.dumps({{"modules": names, "loaded": loaded}}))
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert {"csa_core.cli.main", "csa_core.adapt.continual", "csa_core.nerf.fit"} <= set(result["modules"])
     assert result["loaded"] == []
+
+
+def test_the_data_layer_imports_no_package_built_on_it():
+    above = sorted(p.name for p in CORE.iterdir() if (p / "__init__.py").is_file() and p.name != "data")
+    assert {"nerf", "seg", "adapt"} <= set(above)
+    files = sorted((CORE / "data").rglob("*.py"))
+    assert any(p.name == "label_noise.py" for p in files)  # the whole data package was scanned
+    offending = [
+        f"{path.relative_to(REPO)}:{line}: imports {module}"
+        for path in files
+        for line, module in imported_names(ast.parse(path.read_text(), filename=str(path)))
+        if module.split(".")[:2] in [["csa_core", name] for name in above]
+    ]
+    assert offending == []

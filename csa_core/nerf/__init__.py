@@ -19,7 +19,6 @@ _EXPORTS = {
     "checkpoint": ("checkpoint_info", "load_checkpoint", "save_checkpoint"),
     "config": ("NerfConfig", "preset"),
     "fit": ("FitStats", "fit_semantic_nerf"),
-    "label_noise": ("LabelNoiseConfig", "corrupt_labels"),
     "model": ("SemanticNerf",),
     "rays": ("RayBank", "camera_directions", "image_rays"),
     "render": (

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from csa_core.data.label_noise import LabelNoiseConfig, corrupt_labels
 from csa_core.eval.miou import ConfusionMatrix
 from csa_core.nerf.fit import fit_semantic_nerf
-from csa_core.nerf.label_noise import LabelNoiseConfig, corrupt_labels
 from csa_core.nerf.render import render_pseudo_labels
 from tests.nerf.conftest import synthetic_scene, tiny_config
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from csa_core.nerf.label_noise import LabelNoiseConfig, corrupt_labels
+from csa_core.data.label_noise import LabelNoiseConfig, corrupt_labels
 
 
 def _labels() -> np.ndarray:

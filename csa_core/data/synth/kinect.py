@@ -14,7 +14,7 @@ Kinect v1 and a network would deliver:
 - **colour noise**;
 - **label errors** in a ``label-noisy`` folder: *systematic* ones, the same in every view that
   sees a region from one side (a network that mistakes one sofa's back for a bed does so in
-  every frame), and the per-frame ones of :mod:`csa_core.nerf.label_noise`.
+  every frame), and the per-frame ones of :mod:`csa_core.data.label_noise`.
 
 The ground-truth folder stays clean for scoring. Every random choice derives from ``seed`` and
 the frame's name, and region-wise choices from hashes of world coordinates, so the output
@@ -31,10 +31,10 @@ import cv2
 import numpy as np
 
 from csa_core.data.camera import Intrinsics
+from csa_core.data.label_noise import LabelNoiseConfig, corrupt_labels
 from csa_core.data.scene import NYU40_FOLDER, Frame, Scene
 from csa_core.data.synth.noise import hash01, value_noise3
 from csa_core.errors import CSAInputError
-from csa_core.nerf.label_noise import LabelNoiseConfig, corrupt_labels
 
 NOISY_FOLDER = "label-noisy"
 REFERENCE_WIDTH = 640  # pixel sizes in the config are given at the Kinect's 640x480

@@ -22,10 +22,10 @@ from csa_core.adapt.baselines.voxel_map import (
     voxel_coords,
 )
 from csa_core.data.camera import Intrinsics, pixel_rays
+from csa_core.data.label_noise import corrupt_labels
 from csa_core.data.scene import NYU40_FOLDER, Frame, Scene
 from csa_core.data.synth import generate_scene
 from csa_core.errors import CSAInputError
-from csa_core.nerf.label_noise import corrupt_labels
 from tests.tiny_scenes import look_at_pose
 
 
