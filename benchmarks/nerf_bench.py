@@ -14,24 +14,21 @@ Held-out (``--holdout``): ``tail`` = the scene's validation frames (last 20% of 
 the project's protocol); ``every:N`` = every N-th frame (interleaved, the usual NeRF protocol),
 training on the others. ``--color-camera kinect`` moves 7-Scenes frames to the Kinect colour
 camera (``csa_core.data.registration``). On synthetic scenes with ``--noise`` the labels fused
-are corrupted per frame (``csa_core.nerf.label_noise``); with ``--hard`` the scene becomes a
-Kinect-like capture (``csa_core.data.synth.kinect``: depth noise and holes, systematic and
-per-frame label errors). The table then reports mIoU vs ground truth of the corrupted inputs
-and of the labels rendered at the training and held-out views (each with its measured depth,
-as pseudo-labels are made; ``miou_val_novel``: held-out views rendered without depth), beside
-the voxel-map fusion of the same labels (the Mapping baseline) in the same run.
+are corrupted per frame (``csa_core.data.label_noise``). The table then reports mIoU vs ground
+truth of the corrupted inputs and of the labels rendered at the training and held-out views
+(each with its measured depth, as pseudo-labels are made; ``miou_val_novel``: held-out views
+rendered without depth). For the voxel-map fusion of the same labels beside each preset, and
+for the Kinect-like hard variant of a scene, use ``benchmarks/fusion_bench.py``.
 ``labels_s_per_view``: labels of a view with depth; ``novel_s_per_view``: colour and labels of a
 view without depth; ``total_s``: fit plus the labels of every frame of the scene.
 ``--reload`` renders everything from the checkpoint written in the storage dtype and read back.
 
     python benchmarks/nerf_bench.py --scene synth:office:0 --frames 250 --noise --presets fast
-    python benchmarks/nerf_bench.py --scene synth:office:0 --frames 250 --hard --presets fast
 """
 
 from __future__ import annotations
 
 import argparse
-import ast
 import platform
 import tempfile
 import time
@@ -40,19 +37,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from csa_core.data.label_noise import corrupt_labels
 from csa_core.data.registration import (
     KINECT_V1_COLOR,
     color_consistency_rms,
     estimate_color_camera,
     to_color_camera,
 )
+from csa_core.errors import CSAInputError
 from csa_core.eval.miou import ConfusionMatrix
 from csa_core.nerf.appearance import nearest_frame
 from csa_core.nerf.checkpoint import checkpoint_bytes, load_checkpoint, save_checkpoint
-from csa_core.nerf.config import NerfConfig, preset
+from csa_core.nerf.config import preset
 from csa_core.nerf.fit import fit_semantic_nerf
-from csa_core.nerf.label_noise import corrupt_labels
 from csa_core.nerf.render import render_frames, render_image
+from csa_core.overrides import apply_overrides
 
 
 def load_scene(spec: str, size: tuple[int, int], frames: int):
@@ -93,21 +92,6 @@ def split_frames(scene, holdout: str):
     )
 
 
-def apply_overrides(cfg: NerfConfig, items: list[str]) -> None:
-    """``section.name=value`` assignments (Python literals) on a config, e.g. ``sampler.spread_samples=16``."""
-    for item in items:
-        key, _, value = item.partition("=")
-        *path, name = key.split(".")
-        obj = cfg
-        for part in path:
-            obj = getattr(obj, part)
-        if not hasattr(obj, name):
-            raise SystemExit(f"--set {item!r}: no config field {key!r}")
-        old = getattr(obj, name)
-        new = value if isinstance(old, str) else ast.literal_eval(value)
-        setattr(obj, name, type(old)(new) if isinstance(old, (int, float)) else new)
-
-
 def color_camera(scene, spec: str):
     """The scene at its colour camera (``kinect``: the measured Kinect v1 camera, ``estimate``:
     searched from it on this scene) and a description, or the scene unchanged for ``none``."""
@@ -127,23 +111,6 @@ def color_camera(scene, spec: str):
     return to_color_camera(scene, cam), desc
 
 
-def voxel_row(scene, labels: str, train, held_out) -> dict:
-    """The Mapping baseline's voxel fusion of the same labels, read back at the same views."""
-    from csa_core.adapt.baselines.mapping import build_voxel_map, render_map_labels
-
-    t0 = time.perf_counter()
-    voxel_map = build_voxel_map(scene, {f.name: f.labels[labels] for f in train})
-    t1 = time.perf_counter()
-    fused = render_map_labels(voxel_map, scene, [f.name for f in train + held_out])
-    t2 = time.perf_counter()
-    row = {"preset": "voxel map", "fit_s": t1 - t0}
-    row["labels_s_per_view"] = (t2 - t1) / max(1, len(train) + len(held_out))
-    row["miou_rendered"] = label_miou(fused, train)
-    row["miou_val"] = label_miou(fused, held_out)
-    row["total_s"] = t2 - t0
-    return row
-
-
 def label_miou(labels: dict, frames) -> float:
     matrix = ConfusionMatrix()
     for f in frames:
@@ -158,20 +125,13 @@ def run(args: argparse.Namespace) -> list[dict]:
     labels = None
     if has_gt:
         labels = "label-nyu40"
-        if args.hard:
-            from csa_core.data.synth.kinect import NOISY_FOLDER, degrade_scene
-
-            scene = degrade_scene(scene, seed=args.seed)
-            labels = NOISY_FOLDER
-        elif args.noise:
+        if args.noise:
             rng = np.random.default_rng(args.seed)
             for f in scene.frames:
                 f.labels["noisy"] = corrupt_labels(f.labels["label-nyu40"], rng)
             labels = "noisy"
     train, held_out = split_frames(scene, args.holdout)
     rows = []
-    if labels is not None and labels != "label-nyu40" and args.voxel:
-        rows.append(voxel_row(scene, labels, train, held_out))
     for name in args.presets.split(","):
         cfg = preset(name)
         if args.rays:
@@ -182,7 +142,10 @@ def run(args: argparse.Namespace) -> list[dict]:
             cfg.appearance = args.appearance
         if args.storage_dtype:
             cfg.storage_dtype = args.storage_dtype
-        apply_overrides(cfg, args.set)
+        try:
+            apply_overrides(cfg, args.set)
+        except CSAInputError as err:
+            raise SystemExit(f"nerf_bench: {err}") from None
         nerf, stats = fit_semantic_nerf(
             scene,
             labels,
@@ -322,18 +285,6 @@ def main() -> None:
     p.add_argument("--log2-table", type=int, default=None, help="override the hash table size")
     p.add_argument(
         "--noise", action="store_true", help="fuse per-frame corrupted labels (synthetic scenes)"
-    )
-    p.add_argument(
-        "--hard",
-        action="store_true",
-        help="Kinect-like capture of a synthetic scene (csa_core.data.synth.kinect): depth "
-        "noise and holes, systematic and per-frame label errors",
-    )
-    p.add_argument(
-        "--no-voxel",
-        dest="voxel",
-        action="store_false",
-        help="without the voxel-map fusion row (with --noise/--hard it is computed by default)",
     )
     p.add_argument(
         "--holdout",

@@ -14,9 +14,12 @@ import json
 import shutil
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from csa_core.cli.args import positive_int, size_arg
+from csa_core.cli.args import add_set_argument, positive_int, size_arg
+
+if TYPE_CHECKING:
+    from csa_core.adapt.config import AdaptConfig
 
 DEFAULT_PRESET = "cpu"
 
@@ -77,6 +80,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--overwrite", action="store_true", help="replace the results of an earlier run in --out"
     )
+    add_set_argument(p, "AdaptConfig", "collapse.enabled=false or replay.buffer_size=24")
     p.set_defaults(func=run_adapt)
 
 
@@ -113,24 +117,15 @@ def _table_one_step(record: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def run_adapt(args: argparse.Namespace) -> int:
-    import torch
-
+def adapt_config(args: argparse.Namespace) -> AdaptConfig:
+    """The run's config: the preset, every seed set to ``--seed``, ``--mode``, ``--adabn``
+    and ``--device``, then the ``--set`` overrides (the last word); an input error names a
+    bad flag or override before anything is loaded."""
     from csa_core.adapt.config import MODES, PRESETS, preset
-    from csa_core.adapt.continual import format_table, run_continual
-    from csa_core.adapt.methods import METHODS, check_method, pretrain_context
-    from csa_core.adapt.step import one_step
-    from csa_core.atomic_io import write_text_atomic
-    from csa_core.data.scene_io import read_scene
-    from csa_core.device import resolve_device
     from csa_core.errors import CSAInputError
     from csa_core.experiments.inputs import seeded
-    from csa_core.experiments.report import jsonable
-    from csa_core.seg.checkpoint import load_checkpoint, save_checkpoint
-    from csa_core.seg.config import paper_network_note
+    from csa_core.overrides import apply_overrides
 
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
     if args.preset not in PRESETS:
         raise CSAInputError(
             "--preset", f"unknown preset {args.preset!r} (choose from {', '.join(PRESETS)})"
@@ -139,6 +134,30 @@ def run_adapt(args: argparse.Namespace) -> int:
         raise CSAInputError(
             "--mode", f"unknown mode {args.mode!r} (choose from {', '.join(MODES)})"
         )
+    config = seeded(preset(args.preset), args.seed)
+    config.mode = args.mode or config.mode
+    if args.adabn is not None:
+        config.adabn = args.adabn == "on"
+    config.seg.device = args.device
+    return apply_overrides(config, args.set)
+
+
+def run_adapt(args: argparse.Namespace) -> int:
+    import torch
+
+    from csa_core.adapt.continual import format_table, run_continual
+    from csa_core.adapt.methods import METHODS, check_method, pretrain_context
+    from csa_core.adapt.step import one_step
+    from csa_core.atomic_io import write_text_atomic
+    from csa_core.data.scene_io import read_scene
+    from csa_core.device import resolve_device
+    from csa_core.experiments.report import jsonable
+    from csa_core.seg.checkpoint import load_checkpoint, save_checkpoint
+    from csa_core.seg.config import paper_network_note
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    config = adapt_config(args)
     method = check_method(args.method, METHODS, "--method")
     _check_out(args.out, args.overwrite)
     model, card = load_checkpoint(args.model, device=resolve_device(args.device))
@@ -148,11 +167,6 @@ def run_adapt(args: argparse.Namespace) -> int:
         print(note, file=sys.stderr)
     scenes = [read_scene(p, size=size) for p in args.scenes]
     pretrain_scenes = [read_scene(p, size=size) for p in args.pretrain_scenes]
-    config = seeded(preset(args.preset), args.seed)
-    config.mode = args.mode or config.mode
-    if args.adabn is not None:
-        config.adabn = args.adabn == "on"
-    config.seg.device = args.device
     args.out.mkdir(parents=True, exist_ok=True)
     checkpoint = args.out / "model.safetensors"
     if len(scenes) == 1:

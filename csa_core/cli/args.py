@@ -24,3 +24,16 @@ def positive_int(text: str) -> int:
     if v < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
     return v
+
+
+def add_set_argument(parser: argparse.ArgumentParser, config: str, example: str) -> None:
+    """The repeatable ``--set KEY=VALUE`` flag: a field of the command's ``config`` (the name of
+    its dataclass), applied after the preset and the dedicated flags (``csa_core.overrides``)."""
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=f"set a field of the {config} after the preset and the other flags, e.g. "
+        f'{example}; repeatable (docs/presets.md "Overriding a preset")',
+    )

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from csa_core.adapt.config import MODES
+from csa_core.adapt.config import MODES, AdaptConfig
 from csa_core.adapt.config import PRESETS as ADAPT_PRESETS
-from csa_core.cli.args import positive_int, size_arg
+from csa_core.cli.args import add_set_argument, positive_int, size_arg
 
 DEFAULT_SEVEN_SCENES = Path("../shared/data/7scenes-kitchen-100")
 # Summary columns: key of csa_core.cli.demo_adapt.summary_rows -> printed title.
@@ -58,7 +58,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--label-fusion", action="store_true", help="also fuse corrupted labels of a new scene in a NeRF")
     p.add_argument("--fusion-size", type=size_arg, default=(80, 60), help="working size of the label-fusion step")
     p.add_argument("--fusion-steps", type=positive_int, default=600, help="NeRF optimisation steps (fast preset)")
+    add_set_argument(p, "AdaptConfig of the continual run", "pool_batchnorm=false")
     p.set_defaults(func=run_demo)
+
+
+def demo_config(args: argparse.Namespace, device: str | None) -> AdaptConfig:
+    """The continual run's AdaptConfig: ``--preset``, ``--mode``, every seed ``--seed``, the
+    device, then the ``--set`` overrides (the last word)."""
+    from csa_core.adapt.config import preset as adapt_preset
+    from csa_core.overrides import apply_overrides
+
+    config = adapt_preset(args.preset)
+    config.mode = args.mode
+    config.seg.seed = config.nerf.seed = config.replay.seed = args.seed
+    config.seg.device = device
+    return apply_overrides(config, args.set)
 
 
 def _scene_stats(scene) -> dict:
@@ -112,9 +126,9 @@ def _label_fusion(scene_dir: Path, out: Path, size: tuple[int, int], steps: int,
     from csa_core.adapt.pseudo_labels import label_miou, render_at_frames
     from csa_core.atomic_io import atomic_dir
     from csa_core.data.label_images import colorize
+    from csa_core.data.label_noise import corrupt_labels
     from csa_core.data.scene_io import read_scene
     from csa_core.nerf import fit_semantic_nerf, save_checkpoint
-    from csa_core.nerf.label_noise import corrupt_labels
 
     scene = read_scene(scene_dir, size=size)
     rng = np.random.default_rng(seed)
@@ -176,7 +190,6 @@ def run_demo(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from csa_core.adapt.config import preset as adapt_preset
     from csa_core.adapt.continual import format_table, run_continual
     from csa_core.atomic_io import write_text_atomic
     from csa_core.cli.demo_adapt import adabn_only, plot_steps, pretrain_network
@@ -189,9 +202,10 @@ def run_demo(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     console = Console()
     out: Path = args.out
+    device = str(resolve_device(args.device))
+    config = demo_config(args, device)  # a bad --set fails here, before any work
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    device = str(resolve_device(args.device))
     report: dict = {
         "config": {
             k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"
@@ -282,10 +296,6 @@ def run_demo(args: argparse.Namespace) -> int:
 
     console.rule(f"5. continual adaptation to {len(new)} {args.target_family} rooms ({args.mode}, NeRF replay)")
     t = time.perf_counter()
-    config = adapt_preset(args.preset)
-    config.mode = args.mode
-    config.seg.seed = config.nerf.seed = config.replay.seed = args.seed
-    config.seg.device = device
     adabn = adabn_only(model, target_scenes, config)
     result = run_continual(model, target_scenes, config, out / "continual", pretrain_scenes=pre_scenes)
     report["seconds"]["adapt"] = time.perf_counter() - t

@@ -5,7 +5,8 @@ its own, every mode and baseline), ``multi-step`` (the continual protocol per me
 ``footprint`` (memory per method after 1..T scenes). Scenes need ``label-nyu40`` ground
 truth: it is read only to score. Outputs go to ``--out``: ``<name>.md``, ``<name>.csv``,
 ``config.json`` (one entry per experiment: seeds, inputs, versions, every run's config), PNG
-plots, and the runs' own files under ``runs/<name>/``.
+plots, and the runs' own files under ``runs/<name>/``. ``--set KEY=VALUE`` changes a field of
+every run's ``AdaptConfig`` after the preset and the other flags.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from csa_core.cli.args import positive_int, size_arg
+from csa_core.cli.args import add_set_argument, positive_int, size_arg
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -83,6 +84,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                 help="every method with AdaBN (BatchNorm statistics re-estimated on each "
                 "scene's camera images), without, or both side by side (default: the preset's, on)",
             )
+        add_set_argument(
+            e, "AdaptConfig of every run", "collapse.enabled=false or replay.buffer_size=24"
+        )
         e.set_defaults(func=run_experiment_command)
 
 
@@ -115,6 +119,7 @@ def run_experiment_command(args: argparse.Namespace) -> int:
         methods=methods,
         allowed_methods=allowed_methods(name),
         adabn=getattr(args, "adabn", None),
+        overrides=args.set,
     )
     note = paper_network_note(args.preset, inputs.card.arch, inputs.size)
     if note:

@@ -5,8 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from csa_core.cli.args import positive_int, size_arg
+from csa_core.cli.args import add_set_argument, positive_int, size_arg
+
+if TYPE_CHECKING:
+    from csa_core.nerf.config import NerfConfig
 
 
 def add_nerf_commands(sub: argparse._SubParsersAction) -> None:
@@ -56,6 +60,7 @@ def add_nerf_commands(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--seed", type=int, default=None)
     f.add_argument("--overwrite", action="store_true")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_set_argument(f, "NerfConfig", "loss.free_space=0 or sampler.train=reference")
     f.set_defaults(func=_fit)
 
     r = cmds.add_parser("render", help="render colour, depth and NYU40 labels from a checkpoint")
@@ -96,26 +101,39 @@ def add_nerf_commands(sub: argparse._SubParsersAction) -> None:
 register = add_nerf_commands
 
 
+def fit_config(args: argparse.Namespace) -> NerfConfig:
+    """The fit's config: the preset, then ``--steps``, ``--dtype`` and ``--seed``, then the
+    ``--set`` overrides (the last word). The checkpoint stores it."""
+    from csa_core.nerf.config import preset
+    from csa_core.overrides import apply_overrides
+
+    cfg = preset(args.preset)
+    if args.steps is not None:
+        cfg.optim.steps = args.steps
+    if args.dtype is not None:
+        cfg.storage_dtype = args.dtype
+    if args.seed is not None:
+        cfg.seed = args.seed
+    return apply_overrides(cfg, args.set)
+
+
 def _fit(args: argparse.Namespace) -> int:
     from csa_core.data.scene_io import read_scene
     from csa_core.errors import CSAInputError
     from csa_core.nerf.checkpoint import save_checkpoint
-    from csa_core.nerf.config import preset
     from csa_core.nerf.fit import fit_semantic_nerf
 
     if args.out.exists() and not args.overwrite:
         raise CSAInputError(args.out, "output already exists (pass --overwrite to replace it)")
+    cfg = fit_config(args)
     labels = None if args.labels.lower() == "none" else args.labels
     scene = read_scene(
         args.scene, size=args.size, labels=[labels] if labels else [], every=args.every
     )
-    cfg = preset(args.preset)
-    if args.seed is not None:
-        cfg.seed = args.seed
     nerf, stats = fit_semantic_nerf(
-        scene, labels, cfg, device=args.device, steps=args.steps, progress=not args.quiet
+        scene, labels, cfg, device=args.device, progress=not args.quiet
     )
-    size = save_checkpoint(nerf, args.out, dtype=args.dtype)
+    size = save_checkpoint(nerf, args.out)
     print(
         f"{args.out}: {size / 1e6:.2f} MB, {stats.steps} steps in {stats.seconds:.1f} s "
         f"({stats.rays_per_second:,.0f} rays/s), train PSNR {stats.final_psnr:.2f} dB"

@@ -23,6 +23,7 @@ from csa_core.adapt.config import MODES, AdaptConfig, preset
 from csa_core.adapt.methods import check_method
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.errors import CSAInputError
+from csa_core.overrides import apply_overrides
 from csa_core.seg.checkpoint import ModelCard
 from csa_core.seg.models import SegmentationNet
 
@@ -107,6 +108,8 @@ class ExperimentInputs:
     mode: str | None = None  # ours' mode in the continual protocol (None: the preset's)
     methods: list[str] | None = None  # None: the experiment's default list
     adabn: str | None = None  # "on", "off" or "both" (None: the preset's AdaptConfig.adabn)
+    # ``--set KEY=VALUE`` items, applied to every run's config after everything else
+    overrides: list[str] = field(default_factory=list)
 
     def network(self) -> SegmentationNet:
         """A fresh copy of the pre-trained network (runs must not share weights)."""
@@ -123,20 +126,24 @@ class ExperimentInputs:
 
     def config(self, seed: int, mode: str | None = None, adabn: bool | None = None) -> AdaptConfig:
         """The preset's config with every seed set to ``seed``, ``mode`` (or the inputs'
-        mode), ``adabn`` (``None``: the preset's) and the device."""
+        mode), ``adabn`` (``None``: the preset's) and the device, then the ``overrides``
+        (the last word: ``--set nerf.seed=3`` fixes that seed for every run)."""
         config = seeded(preset(self.preset), seed)
         config.mode = mode or self.mode or config.mode
         if adabn is not None:
             config.adabn = adabn
         config.seg.device = self.device
-        return config
+        return apply_overrides(config, self.overrides)
 
     def adabn_variants(self) -> list[bool]:
         """The AdaBN settings to run each method with: ``[True, False]`` for ``both``,
-        one of them for ``on`` / ``off``, the preset's own otherwise."""
-        if self.adabn is None:
-            return [preset(self.preset).adabn]
-        return {"on": [True], "off": [False], "both": [True, False]}[self.adabn]
+        one of them for ``on`` / ``off``, the preset's own otherwise; a ``--set adabn=...``
+        override replaces the one setting (with ``both`` it is refused by
+        :func:`load_inputs`)."""
+        if self.adabn == "both":
+            return [True, False]
+        flag = None if self.adabn is None else self.adabn == "on"
+        return [self.config(self.seeds[0], adabn=flag).adabn]
 
     def describe(self) -> dict[str, Any]:
         """The inputs as recorded in config.json."""
@@ -154,6 +161,7 @@ class ExperimentInputs:
             "mode": self.mode,
             "methods": self.methods,
             "adabn": self.adabn,
+            "overrides": self.overrides,
             "seeds": self.seeds,
             "size": list(self.size) if self.size else None,
             "device": self.device,
@@ -174,9 +182,11 @@ def load_inputs(
     allowed_methods: Sequence[str] = (),
     need_ground_truth: bool = True,
     adabn: str | None = None,
+    overrides: Sequence[str] = (),
 ) -> ExperimentInputs:
     """Check and load everything an experiment needs. ``size`` defaults to the size the
-    network was trained at (then the scenes' own); ``methods`` must be in ``allowed_methods``."""
+    network was trained at (then the scenes' own); ``methods`` must be in ``allowed_methods``;
+    ``overrides`` (``--set`` items) are checked on the preset before anything is loaded."""
     from csa_core.adapt.config import PRESETS
     from csa_core.device import resolve_device
     from csa_core.seg.checkpoint import load_checkpoint
@@ -189,6 +199,12 @@ def load_inputs(
         raise CSAInputError("--mode", f"unknown mode {mode!r} (choose from {', '.join(MODES)})")
     if adabn is not None and adabn not in ADABN_CHOICES:
         raise CSAInputError("--adabn", f"expected one of {', '.join(ADABN_CHOICES)}, got {adabn!r}")
+    overrides = list(overrides)
+    apply_overrides(preset(preset_name), overrides)
+    if adabn == "both" and any(item.partition("=")[0].strip() == "adabn" for item in overrides):
+        raise CSAInputError(
+            "--set adabn", "--adabn both runs every method with and without AdaBN: drop one of them"
+        )
     for name in methods or ():
         check_method(name, allowed_methods, "--methods")
     if methods is not None and not methods:
@@ -216,4 +232,5 @@ def load_inputs(
         mode=mode,
         methods=list(methods) if methods is not None else None,
         adabn=adabn,
+        overrides=overrides,
     )
