@@ -5,6 +5,7 @@ Examples (run from the repository root):
 
     python benchmarks/fusion_bench.py --families all --variants clean,hard --frames 250
     python benchmarks/fusion_bench.py synth:office:0 --variants hard --presets fast --steps 300
+    python benchmarks/fusion_bench.py synth:office:0 --variants hard --renders holes-marched
     python benchmarks/fusion_bench.py folder:data/office_0 --labels label-noisy
     python benchmarks/fusion_bench.py synth:studio:1 --predictions model.safetensors
     python benchmarks/fusion_bench.py ../shared/data/7scenes-kitchen-100 --frames 100
@@ -16,7 +17,7 @@ project's importer at ``--size`` and moved to the Kinect colour camera. ``--fami
 
 Labels fused (training views; ground truth ``label-nyu40`` scores them):
 ``--noise`` (default for scenes with ground truth) corrupts each frame's ground truth
-(``csa_core.nerf.label_noise``); ``--labels NAME`` takes a label folder of the scene;
+(``csa_core.data.label_noise``); ``--labels NAME`` takes a label folder of the scene;
 ``--predictions MODEL.safetensors`` takes a segmentation network's predictions.
 ``--variants hard`` turns each scene into a Kinect-like capture first
 (``csa_core.data.synth.kinect``): noisy depth with holes and noisy colour, and with ``--noise``
@@ -30,8 +31,13 @@ Rows: ``input`` is the per-frame labels themselves; ``map`` fuses them in 5 cm v
 (``build_voxel_map``) and reads each view by ray casting (``render_map_labels``, Frey et al.);
 ``map, depth read-back`` reads the same map through each view's own measured depth (the
 older read-back: it can only label pixels with depth); one row per NeRF preset
-(``fit_semantic_nerf``, rendered with ``render_views``). Columns: mIoU on the training views
-and on the held-out views (the scene's last 20%), fit seconds, render seconds per view (train
+(``fit_semantic_nerf``, rendered with ``render_views``). ``--renders`` adds rows that render
+the same fit again with another render option (fit seconds and size are the fit's):
+``holes-marched`` marches the pixels in depth holes along the whole ray (the render before
+``SamplerConfig.render_hole_estimate``), ``unseen-unknown`` labels surfaces that no training
+camera saw 0, unknown, as the map does (``NerfConfig.render_unseen_unknown``; its printed
+line also gives ``val_unknown``, the share of held-out pixels left unknown). Columns: mIoU on
+the training views and on the held-out views (the scene's last 20%), fit seconds, render seconds per view (train
 and held-out views together), stored bytes (map: keys and scores as held in memory; NeRF: its
 checkpoint file) and peak memory: the process's peak resident set size while that fuser fit
 and rendered (Linux: VmHWM, reset before each fuser through /proc/self/clear_refs; elsewhere
@@ -55,23 +61,24 @@ from typing import Any
 
 import numpy as np
 import torch
-from nerf_bench import apply_overrides, color_camera, load_scene, psnr
+from nerf_bench import color_camera, load_scene, psnr
 
 from csa_core.adapt.baselines.mapping import build_voxel_map, render_map_labels
 from csa_core.adapt.baselines.voxel_map import VoxelMapConfig
 from csa_core.atomic_io import write_text_atomic
+from csa_core.data.label_noise import corrupt_labels
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.data.synth import NOISY_FOLDER, degrade_scene, family_names, parse_size
 from csa_core.errors import CSAInputError
 from csa_core.eval import ConfusionMatrix
 from csa_core.nerf import (
-    corrupt_labels,
     fit_semantic_nerf,
     preset,
     render_image,
     render_views,
     save_checkpoint,
 )
+from csa_core.overrides import apply_overrides
 
 INPUT = "input"  # label folder the fusers read in this benchmark
 
@@ -257,7 +264,14 @@ def map_rows(scene: Scene, has_labels: bool, args: argparse.Namespace) -> list[d
     return rows
 
 
-def nerf_row(scene: Scene, has_labels: bool, name: str, args: argparse.Namespace) -> dict[str, Any]:
+def nerf_row(
+    scene: Scene,
+    has_labels: bool,
+    name: str,
+    args: argparse.Namespace,
+    fitted: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Fit preset ``name`` and score its renders; the model goes into ``fitted["nerf"]``."""
     train, val = scene.train_frames, scene.val_frames
     cfg = preset(name)
     apply_overrides(cfg, args.set)
@@ -270,6 +284,8 @@ def nerf_row(scene: Scene, has_labels: bool, name: str, args: argparse.Namespace
         steps=args.steps,
         progress=False,
     )
+    if fitted is not None:
+        fitted["nerf"] = nerf
     row: dict[str, Any] = {"fuser": f"NeRF {name} ({stats.steps} steps)", "fit_s": stats.seconds}
     with tempfile.TemporaryDirectory() as tmp:
         row["stored_mb"] = save_checkpoint(nerf, Path(tmp) / "nerf.safetensors") / 1e6
@@ -293,6 +309,43 @@ def nerf_row(scene: Scene, has_labels: bool, name: str, args: argparse.Namespace
     row["val_psnr"] = psnr(float(np.mean(mses)))
     row["val_depth_l1_m"] = float(np.concatenate(errs).mean())
     row["val_coverage"] = 1.0
+    return row
+
+
+RENDERS = {  # --renders: name -> (row suffix, render option of the fitted model)
+    "holes-marched": ("holes marched", ("sampler", "render_hole_estimate", False)),
+    "unseen-unknown": ("unseen=unknown", (None, "render_unseen_unknown", True)),
+}
+
+
+def render_row(
+    scene: Scene, fitted: dict[str, Any], fit: dict[str, Any], render: str
+) -> dict[str, Any]:
+    """The labels of an already fitted NeRF (``fitted["nerf"]``, row ``fit``) rendered again
+    with the ``render`` option of ``RENDERS`` switched."""
+    nerf = fitted["nerf"]
+    suffix, (section, key, value) = RENDERS[render]
+    target = nerf.config if section is None else getattr(nerf.config, section)
+    before = getattr(target, key)
+    setattr(target, key, value)
+    try:
+        t0 = time.perf_counter()
+        rendered = {}
+        for views in ("train", "val"):
+            for v in render_views(nerf, scene, views, semantics=True, color=False):
+                rendered[v.name] = v.labels
+        seconds = (time.perf_counter() - t0) / len(scene.frames)
+    finally:
+        setattr(target, key, before)
+    row = {"fuser": f"{fit['fuser']}, {suffix}", "fit_s": fit["fit_s"]}
+    row["render_s_per_view"] = seconds
+    row["stored_mb"] = fit["stored_mb"]
+    row["miou_train"] = miou(rendered, scene.train_frames)
+    row["miou_val"] = miou(rendered, scene.val_frames)
+    if render == "unseen-unknown":
+        row["val_unknown"] = float(
+            np.mean([(rendered[f.name] == 0).mean() for f in scene.val_frames])
+        )
     return row
 
 
@@ -322,7 +375,11 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
             scored = has_labels and labelled
             fused = map_rows(scene, scored, args)
             for name in [n for n in args.presets.split(",") if n not in ("", "none")]:
-                fused.append(measured(nerf_row, scene, scored, name, args))
+                fitted: dict[str, Any] = {}
+                fit = measured(nerf_row, scene, scored, name, args, fitted)
+                fused.append(fit)
+                for render in args.renders if scored else []:
+                    fused.append(measured(render_row, scene, fitted, fit, render))
             for row in fused:
                 rows.append({**head, **row})
                 print("  " + ", ".join(f"{k} {fmt(k, v)}" for k, v in row.items()), flush=True)
@@ -405,6 +462,11 @@ def main() -> None:
     p.add_argument("--presets", default="fast", help="comma-separated NeRF presets, or none")
     p.add_argument("--steps", type=int, default=None, help="override the presets' step counts")
     p.add_argument("--set", action="append", default=[], help="NeRF config override, a.b=value")
+    p.add_argument(
+        "--renders",
+        default="",
+        help=f"extra label renders of each NeRF fit, comma-separated: {', '.join(RENDERS)}",
+    )
     p.add_argument("--voxel", type=float, default=0.05, help="voxel size of the map, metres")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="auto")
@@ -413,6 +475,10 @@ def main() -> None:
     bad = set(args.variants.split(",")) - {"clean", "hard"}
     if bad:
         raise SystemExit(f"--variants: unknown {', '.join(sorted(bad))} (clean, hard)")
+    args.renders = [r for r in args.renders.split(",") if r]
+    bad = set(args.renders) - set(RENDERS)
+    if bad:
+        raise SystemExit(f"--renders: unknown {', '.join(sorted(bad))} ({', '.join(RENDERS)})")
     from csa_core.device import resolve_device
 
     torch.set_num_threads(args.threads)

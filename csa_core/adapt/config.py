@@ -14,6 +14,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from csa_core.seg.config import AugmentConfig, official_augment
+
 Mode = Literal["gi_nl", "ni_nl", "joint"]
 MODES: tuple[str, ...] = ("gi_nl", "ni_nl", "joint")
 JOINT_SCHEDULES: tuple[str, ...] = ("round", "batch")
@@ -56,7 +58,8 @@ class NerfBudget:
 
     The remaining fields override the preset's numbers when set: ray batch, hash table size,
     levels and finest resolution, the semantic feature table's levels (``0``: the semantic
-    MLP reads the geometry features only), the semantic MLP's hidden layers, and the final
+    MLP reads the geometry features only), the semantic MLP's hidden layers, whether that MLP
+    reads the geometry features detached (``False``: the official head), and the final
     learning rate as a fraction of the first (``1.0``: a fixed rate).
     """
 
@@ -73,6 +76,7 @@ class NerfBudget:
     finest_resolution: int | None = None
     semantic_grid_levels: int | None = None
     semantic_hidden_layers: int | None = None
+    semantic_detach_geometry: bool | None = None
     final_lr_fraction: float | None = None
     seed: int = 0
 
@@ -97,6 +101,9 @@ class SegBudget:
     schedule: str = "constant"
     seed: int = 0
     device: str | None = None
+    # Augmentation of the training pairs (image and label alike); ours by default, the
+    # official code's in the paper preset (csa_core.seg.config.official_augment).
+    augment: AugmentConfig | None = field(default_factory=AugmentConfig)  # None: off
 
 
 @dataclass
@@ -245,9 +252,15 @@ def paper() -> AdaptConfig:
             finest_resolution=PAPER_FINEST_RESOLUTION,
             semantic_grid_levels=0,
             semantic_hidden_layers=1,
+            semantic_detach_geometry=False,
             final_lr_fraction=1.0,
         ),
-        seg=SegBudget(lr=PAPER_SEG_LR, batch_size=PAPER_BATCH_SIZE, epochs=PAPER_JOINT_EPOCHS),
+        seg=SegBudget(
+            lr=PAPER_SEG_LR,
+            batch_size=PAPER_BATCH_SIZE,
+            epochs=PAPER_JOINT_EPOCHS,
+            augment=official_augment(),
+        ),
         joint=JointBudget(rounds=PAPER_JOINT_EPOCHS, seg_epochs_per_round=1, schedule="batch"),
         replay=ReplayConfig(
             buffer_size=PAPER_BUFFER_SIZE,

@@ -30,7 +30,7 @@ from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.nerf.model import SemanticNerf
 from csa_core.progress import ProgressCallback, notify, sub_progress
 from csa_core.seg.adabn import adapt_batchnorm
-from csa_core.seg.config import TrainConfig
+from csa_core.seg.config import AugmentConfig, TrainConfig
 from csa_core.seg.dataset import SegmentationDataset
 from csa_core.seg.models import SegmentationNet
 from csa_core.seg.predict import evaluate_scene
@@ -50,7 +50,7 @@ def training_pairs(
     labels: Sequence[np.ndarray],
     replay: ReplayBuffer | None = None,
     pretrain: PretrainReplay | None = None,
-    augment: bool = True,
+    augment: AugmentConfig | None = None,
 ) -> tuple[SegmentationDataset, int, int]:
     """One dataset: the current scene's pairs, then the replay buffer (together the "current
     or buffer" part), then the pre-training slice. Returns it with the sizes of both parts."""
@@ -62,7 +62,7 @@ def training_pairs(
     if pretrain is not None:
         imgs += pretrain.images
         labs += pretrain.labels
-    transform = JointAugment() if augment else None
+    transform = JointAugment(augment) if augment is not None else None
     return SegmentationDataset(imgs, labs, transform=transform), primary, len(imgs) - primary
 
 
@@ -225,7 +225,7 @@ def finetune_on_labels(
 ) -> list[float]:
     """Fine-tune on image/label pairs (plus replay) for ``epochs``; returns the epoch losses.
     ``on_progress`` (:mod:`csa_core.progress`) is called after every epoch."""
-    dataset, primary, secondary = training_pairs(images, labels, replay, pretrain)
+    dataset, primary, secondary = training_pairs(images, labels, replay, pretrain, config.seg.augment)
     tuner = SegFinetuner(model, config, epochs, batches_per_epoch(primary, secondary, config))
     losses: list[float] = []
     for k in range(1, epochs + 1):

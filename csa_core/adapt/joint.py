@@ -157,7 +157,7 @@ def _per_round(
             rendered[n] if config.joint.render_images else pseudo.camera[n] for n in pseudo.names
         ]
         dataset, primary, secondary = training_pairs(
-            images, [labels[n] for n in pseudo.names], replay, pretrain
+            images, [labels[n] for n in pseudo.names], replay, pretrain, config.seg.augment
         )
         loss = sum(tuner.epoch(dataset, primary, secondary) for _ in range(per_round)) / per_round
         notify(progress, f"joint round {r}/{rounds}: network trained", (r - 0.6) / rounds)
@@ -223,6 +223,7 @@ def _per_batch(
         [pseudo.labels[f.name] for f in frames],
         replay,
         pretrain,
+        config.seg.augment,
     )
     tuner = SegFinetuner(model, config, epochs, batches_per_epoch(primary, secondary, config))
     nerf_trainer = NerfLabelTrainer(

@@ -46,6 +46,8 @@ def nerf_config(budget: NerfBudget) -> NerfConfig:
         cfg.field.semantic_grid_levels = budget.semantic_grid_levels
     if budget.semantic_hidden_layers is not None:
         cfg.field.semantic_hidden_layers = budget.semantic_hidden_layers
+    if budget.semantic_detach_geometry is not None:
+        cfg.field.semantic_detach_geometry = budget.semantic_detach_geometry
     if budget.final_lr_fraction is not None:
         cfg.optim.final_lr_fraction = budget.final_lr_fraction
     cfg.seed = budget.seed

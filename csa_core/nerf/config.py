@@ -54,6 +54,11 @@ class FieldConfig:
     # Only the semantic loss trains it, so geometry still gets no semantic gradient; the detached
     # 15 geometry features alone could not fit even clean labels in our tests. 0 = paper (geometry features only).
     semantic_grid_levels: int = 12
+    # Ours: the semantic head reads the geometry features detached as well, so the semantic
+    # loss never reaches geometry (a test pins it). False = the official head: the features
+    # carry the semantic gradient into the density MLP and the hash table; in both, the
+    # rendering weights are detached for the semantic channel (docs/presets.md "The paper preset").
+    semantic_detach_geometry: bool = True
     sh_degree: int = 4  # spherical harmonics of the view direction (16 coefficients)
     num_classes: int = NUM_CLASSES  # NYU40 ids 1..40 -> channels 0..39
 
@@ -67,14 +72,24 @@ class SamplerConfig:
     fall back to stratified samples). ``occupancy``: ray marching that skips empty cells of an
     occupancy grid (rendering, and training rays without depth). ``render_depth_guided``:
     views that have measured depth (the training views' pseudo-labels) render with
-    ``render_band_samples`` samples in the depth band only; their rays without a measurement,
-    and views without depth, use the ``render`` sampler.
+    ``render_band_samples`` samples in the depth band only. Their rays without a measurement
+    (sensor holes) get a depth estimate instead when ``render_hole_estimate`` is on (from the
+    first occupied cell of the occupancy grid, a density-only march in steps of
+    ``render_estimate_step`` cells to opacity 1/2: ``samplers.GridSurfaceEstimate``) and render
+    in the band around it, ``render_estimate_band_scale`` times as wide; rays it finds no
+    surface for, all of them when it is off, and views without depth use the ``render``
+    sampler. Rendering only: training samples never change.
     """
 
     train: Literal["reference", "depth", "occupancy"] = "reference"
     render: Literal["reference", "occupancy"] = "reference"
     render_depth_guided: bool = False  # paper: every view renders with the ``render`` sampler
     render_band_samples: int = 8  # depth-guided rendering: samples in the band of each ray
+    # Ours: depth-guided rendering estimates the surface of rays in depth holes instead of
+    # marching them (benchmarks/RESULTS.md, "Depth holes and unseen surfaces"); False = march.
+    render_hole_estimate: bool = True
+    render_estimate_step: float = 0.5  # hole estimate: march step, in occupancy cells
+    render_estimate_band_scale: float = 2.0  # hole estimate: band width against a measurement's
     uniform_samples: int = 256  # docs/method.md "Reference numbers": 256 uniform samples per ray
     importance_samples: int = (
         256  # docs/method.md "Reference numbers": 256 importance samples per ray
@@ -145,6 +160,10 @@ class NerfConfig:
     # gain and bias that absorbs auto exposure and white balance (appearance.py).
     appearance: Literal["none", "affine"] = "none"
     render_chunk: int = 8192  # rays per chunk when rendering
+    # Ours: rendered labels are 0 (unknown, as the map answers) where the surface point lies
+    # outside every training camera's image or no surface is rendered (render.py). Off: the
+    # NeRF's class everywhere (the paper).
+    render_unseen_unknown: bool = False
     seed: int = 0
 
     def to_dict(self) -> dict[str, Any]:
@@ -165,6 +184,7 @@ class NerfConfig:
             storage_dtype=d["storage_dtype"],
             appearance=d.get("appearance", "none"),
             render_chunk=d["render_chunk"],
+            render_unseen_unknown=d.get("render_unseen_unknown", False),
             seed=d["seed"],
         )
 

@@ -1,9 +1,10 @@
 """The Semantic-NeRF field: hash encoding -> density + geometry features -> colour and classes.
 
 Positions are in the encoder's unit cube (``normalization.SceneBox.to_unit``); outside it the
-density is zero. The semantic head reads the geometry features *detached*, and the renderer
-detaches the weights for the semantic channel, so the semantic loss never shapes geometry
-(paper's stop-gradient; docs/method.md "Fuse in 3D").
+density is zero. The renderer detaches the weights for the semantic channel (the paper's
+stop-gradient; docs/method.md "Fuse in 3D"), and by default the semantic head reads the
+geometry features *detached* too, so the semantic loss never shapes geometry; the official
+head reads them undetached (``FieldConfig.semantic_detach_geometry=False``, the paper preset).
 """
 
 from __future__ import annotations
@@ -117,8 +118,11 @@ class SemanticField(nn.Module):
         return sigma, h[:, 1:]
 
     def semantic_head(self, geo: Tensor, sem: Tensor | None) -> Tensor:
-        """Semantic logits from (detached) geometry features and semantic-table features."""
-        sem_in = geo.detach() if sem is None else torch.cat([geo.detach(), sem], dim=-1)
+        """Semantic logits from geometry features (detached unless
+        ``FieldConfig.semantic_detach_geometry`` is off) and semantic-table features."""
+        if self.cfg.semantic_detach_geometry:
+            geo = geo.detach()
+        sem_in = geo if sem is None else torch.cat([geo, sem], dim=-1)
         return self.semantic_mlp(sem_in)
 
     def density(self, x: Tensor) -> tuple[Tensor, Tensor]:

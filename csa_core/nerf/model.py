@@ -28,6 +28,7 @@ from csa_core.nerf.rendering import (
 )
 from csa_core.nerf.samplers import (
     DepthGuidedSampler,
+    GridSurfaceEstimate,
     OccupancyGrid,
     OccupancySampler,
     RaySampler,
@@ -134,14 +135,31 @@ class SemanticNerf(nn.Module):
             kind = "reference"
         return self.make_sampler(kind, training=True)
 
-    def render_sampler(self, with_depth: bool = False) -> RaySampler:
+    def render_sampler(
+        self, with_depth: bool = False, hole_estimate: bool | None = None
+    ) -> RaySampler:
         """The config's render sampler; for views ``with_depth`` and ``render_depth_guided``,
-        samples in the band around the measured depth, the render sampler for rays without."""
+        samples in the band around the measured depth, and for rays without one in the band
+        around an estimated depth where ``hole_estimate`` (default: the config's
+        ``render_hole_estimate``) finds a surface, the render sampler for the rest."""
         s = self.config.sampler
         fallback = self.make_sampler(s.render)
         if with_depth and s.render_depth_guided:
+            if hole_estimate is None:
+                hole_estimate = s.render_hole_estimate
+            estimate = (
+                GridSurfaceEstimate(self.grid, self.box, step_cells=s.render_estimate_step)
+                if hole_estimate
+                else None
+            )
             return DepthGuidedSampler(
-                s.render_band_samples, 0, s.depth_band, s.depth_band_fraction, fallback=fallback
+                s.render_band_samples,
+                0,
+                s.depth_band,
+                s.depth_band_fraction,
+                fallback=fallback,
+                estimate=estimate,
+                estimate_band_scale=s.render_estimate_band_scale,
             )
         return fallback
 

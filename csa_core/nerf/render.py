@@ -4,6 +4,11 @@
 interpolated viewpoints between consecutive training frames (slerp midpoint of the
 rotations, mean of the translations). Training and novel views can be rendered from a
 checkpoint alone (it stores the training poses); ``val`` and ``all`` need the scene.
+
+``unseen_unknown`` (default: the config's ``render_unseen_unknown``, off): a pixel whose
+surface point (its measured depth, else the rendered depth) no training camera sees, or whose
+ray renders no surface at all, gets label 0 (``UNKNOWN``: what the voxel map answers there;
+ignored by the segmentation loss, a miss in the scores) and confidence 0.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from csa_core.atomic_io import atomic_dir
 from csa_core.data import image_files as imf
 from csa_core.data.camera import Intrinsics
 from csa_core.data.label_images import save_preview
+from csa_core.data.nyu40 import UNKNOWN
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.errors import CSAInputError
 from csa_core.nerf.model import SemanticNerf
@@ -115,8 +121,37 @@ def view_poses(
     return [(f.name, np.asarray(f.pose)) for f in scene.split(views)]
 
 
+def seen_surface(
+    nerf: SemanticNerf,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    out: dict[str, torch.Tensor],
+    depth: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Whether each ray's surface point lies inside the image of at least one training camera
+    (``SemanticNerf.seen_by_training_cameras``; the image reaches half a pixel beyond the
+    outermost pixel centres, so the margin is about one pixel), (R,) bool. The point is at the
+    measured ``depth`` where there is one, else at the rendered depth (``out``'s depth over
+    its opacity); rays with neither (nothing rendered) count as unseen."""
+    opacity = out["opacity"]
+    found = opacity > 0
+    t = out["depth"] / opacity.clamp_min(1e-10)
+    if depth is not None:
+        measured = depth > 0
+        t = torch.where(measured, depth, t)
+        found = found | measured
+    points = origins + dirs * t[:, None]
+    intr = nerf.info.intrinsics
+    margin = 1.0 / min(intr.width, intr.height)
+    return found & nerf.seen_by_training_cameras(points, margin=margin)
+
+
 def _view_from_output(
-    out: dict[str, torch.Tensor], intr: Intrinsics, pose: np.ndarray, name: str
+    out: dict[str, torch.Tensor],
+    intr: Intrinsics,
+    pose: np.ndarray,
+    name: str,
+    known: torch.Tensor | None = None,
 ) -> RenderedView:
     h, w = intr.height, intr.width
     if "rgb" in out:
@@ -130,7 +165,11 @@ def _view_from_output(
     )
     if "semantics" in out:
         conf, cls = out["semantics"].max(dim=-1)
-        view.labels = (cls + 1).to(torch.uint8).reshape(h, w).cpu().numpy()
+        cls = cls + 1
+        if known is not None:
+            cls = torch.where(known, cls, torch.full_like(cls, UNKNOWN))
+            conf = torch.where(known, conf, torch.zeros_like(conf))
+        view.labels = cls.to(torch.uint8).reshape(h, w).cpu().numpy()
         view.confidence = conf.reshape(h, w).float().cpu().numpy()
     return view
 
@@ -145,12 +184,14 @@ def render_image(
     appearance: int | None = None,
     depth: np.ndarray | None = None,
     color: bool = True,
+    unseen_unknown: bool | None = None,
 ) -> RenderedView:
     """Render one camera (default: the training camera) at a camera-to-world ``pose``.
     ``appearance``: index of the training frame whose colour correction to apply (models fitted
     with ``appearance="affine"``); ``None`` renders the average appearance. ``depth``: the
     view's measured depth (H, W) metres, 0 = none; the config decides whether samples go
-    around it (``SamplerConfig.render_depth_guided``). Without ``color``, ``color`` is ``None``."""
+    around it (``SamplerConfig.render_depth_guided``). Without ``color``, ``color`` is ``None``.
+    ``unseen_unknown``: see the module's description."""
     return render_frames(
         nerf,
         [(name, pose)],
@@ -160,6 +201,7 @@ def render_image(
         sampler=sampler,
         appearance=appearance,
         color=color,
+        unseen_unknown=unseen_unknown,
     )[0]
 
 
@@ -173,11 +215,15 @@ def render_frames(
     appearance: int | None = None,
     color: bool = True,
     rays_per_pass: int = 2**16,
+    unseen_unknown: bool | None = None,
 ) -> list[RenderedView]:
     """Render the ``(name, pose)`` cameras, the rays of several views per forward pass (about
     ``rays_per_pass``). ``depths``: each view's measured depth (or ``None``); views with depth
-    and views without are batched separately, as they use different samplers."""
+    and views without are batched separately, as they use different samplers.
+    ``unseen_unknown``: see the module's description."""
     intr = intrinsics or nerf.info.intrinsics
+    if unseen_unknown is None:
+        unseen_unknown = nerf.config.render_unseen_unknown
     hw = intr.width * intr.height
     depths = list(depths) if depths is not None else [None] * len(poses)
     if len(depths) != len(poses):
@@ -211,9 +257,18 @@ def render_frames(
                 if with_depth and not color
                 else None,
             )
+            known = None
+            if unseen_unknown and "semantics" in out:
+                known = seen_surface(nerf, origins, dirs, out, depth)
             for k, i in enumerate(group):
                 part = {key: v[k * hw : (k + 1) * hw] for key, v in out.items()}
-                views[i] = _view_from_output(part, intr, poses[i][1], poses[i][0])
+                views[i] = _view_from_output(
+                    part,
+                    intr,
+                    poses[i][1],
+                    poses[i][0],
+                    None if known is None else known[k * hw : (k + 1) * hw],
+                )
     return [views[i] for i in range(len(poses))]
 
 
@@ -225,9 +280,11 @@ def render_views(
     sampler: str | None = None,
     progress: bool = False,
     color: bool = True,
+    unseen_unknown: bool | None = None,
 ) -> list[RenderedView]:
     """Render the ``views`` (train, val, all or novel) of a scene at the checkpoint's camera.
-    With the scene, its frames' measured depth guides the samples where the config says so."""
+    With the scene, its frames' measured depth guides the samples where the config says so.
+    ``unseen_unknown``: see the module's description."""
     poses = view_poses(nerf, views, scene)
     intr = scene.intrinsics if scene is not None else nerf.info.intrinsics
     depth_of = {}
@@ -250,6 +307,7 @@ def render_views(
             semantics=semantics,
             sampler=sampler,
             color=color,
+            unseen_unknown=unseen_unknown,
         )
         if bar is not None:
             bar.update(len(poses[i : i + step]))
@@ -259,11 +317,24 @@ def render_views(
 
 
 def render_pseudo_labels(
-    nerf: SemanticNerf, scene: Scene | None = None, views: str = "train", sampler: str | None = None
+    nerf: SemanticNerf,
+    scene: Scene | None = None,
+    views: str = "train",
+    sampler: str | None = None,
+    unseen_unknown: bool | None = None,
 ) -> dict[str, np.ndarray]:
     """NYU40 pseudo-labels ``{frame name: (H, W) uint8}`` rendered at the ``views`` (labels
-    only: no colour is computed)."""
-    rendered = render_views(nerf, scene, views, semantics=True, sampler=sampler, color=False)
+    only: no colour is computed); with ``unseen_unknown`` 0 where no training camera saw the
+    surface (the segmentation loss skips those pixels)."""
+    rendered = render_views(
+        nerf,
+        scene,
+        views,
+        semantics=True,
+        sampler=sampler,
+        color=False,
+        unseen_unknown=unseen_unknown,
+    )
     return {v.name: v.labels for v in rendered}
 
 

@@ -10,7 +10,11 @@ Functions (the algorithms):
   samples only (the fallback when a scene has no depth at all).
 - ``sample_band``: samples only inside the band around the measured depth (rendering views
   that have depth: the space in front of a measured surface is empty).
-- ``OccupancyGrid``: fixed-step marching that drops samples in cells known to be empty.
+- ``OccupancyGrid``: fixed-step marching that drops samples in cells known to be empty, and
+  ``first_hit``, the first occupied cell along each ray (the grid alone, no density).
+- ``GridSurfaceEstimate``: a surface depth for rays without a measurement (first occupied
+  cell, then a coarse density-only march to opacity 1/2), so that they too can be rendered
+  in a depth band.
 
 Objects (what the trainer and the renderer hold), in the manner of nerfacc's estimators: each
 owns its state and its update schedule, ``sampler.sampling(origins, dirs, t_near, t_far, ...)``
@@ -25,6 +29,7 @@ world points ``(N, 3)`` to densities ``(N,)``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -130,8 +135,8 @@ def sample_depth_guided(
     depth: Tensor,
     n_band: int,
     n_spread: int,
-    band: float,
-    band_fraction: float = 0.0,
+    band: float | Tensor,
+    band_fraction: float | Tensor = 0.0,
     stratified: bool = True,
     generator: torch.Generator | None = None,
 ) -> RaySamples:
@@ -183,14 +188,15 @@ def sample_band(
     t_far: Tensor,
     depth: Tensor,
     n: int,
-    band: float,
-    band_fraction: float = 0.0,
+    band: float | Tensor,
+    band_fraction: float | Tensor = 0.0,
     stratified: bool = False,
     generator: torch.Generator | None = None,
 ) -> RaySamples:
     """``n`` intervals tiling ``depth +- (band + band_fraction * depth)`` (clipped to
     ``[t_near, t_far]``) and nothing else: the space in front of a measured surface is taken to
-    be empty. Every ray must have a measurement (``depth > 0``)."""
+    be empty. Every ray must have a measurement (``depth > 0``). ``band`` and
+    ``band_fraction`` may be per-ray tensors (R,)."""
     half = band + band_fraction * depth
     lo = torch.maximum(depth - half, t_near)
     hi = torch.maximum(torch.minimum(depth + half, t_far), lo)
@@ -370,6 +376,133 @@ class OccupancyGrid(nn.Module):
         half = 0.5 * dt[ri]
         return RaySamples(ri, t - half, t + half, n_rays)
 
+    def cell_size(self, box: SceneBox) -> float:
+        """Edge of one cell in metres."""
+        return box.extent / self.resolution
+
+    @torch.no_grad()
+    def first_hit(
+        self,
+        box: SceneBox,
+        origins: Tensor,
+        dirs: Tensor,
+        t_near: Tensor,
+        t_far: Tensor,
+        step: float | None = None,
+        chunk_steps: int = 64,
+    ) -> Tensor:
+        """``t`` (R,) of the first point of each ray, stepping ``step`` metres (default half a
+        cell) from ``t_near``, that lies in an occupied cell; ``inf`` where the ray meets none
+        before ``t_far``. Only the grid is read (no density is evaluated), so the point is at
+        most ``step`` behind where the ray enters the first occupied cell."""
+        n_rays = origins.shape[0]
+        dev = origins.device
+        hit = torch.full((n_rays,), float("inf"), device=dev)
+        if n_rays == 0:
+            return hit
+        step = step if step is not None else 0.5 * self.cell_size(box)
+        dt = step / dirs.norm(dim=-1)
+        n_steps = int(torch.ceil(((t_far - t_near).clamp_min(0) / dt).max()).item())
+        pending = t_far > t_near
+        occupied = self.occupied.view(-1)
+        for s0 in range(0, n_steps, chunk_steps):
+            rays = torch.nonzero(pending & (t_near + s0 * dt < t_far)).squeeze(-1)
+            if rays.numel() == 0:
+                break
+            k = torch.arange(s0, min(s0 + chunk_steps, n_steps), device=dev, dtype=torch.float32)
+            t = t_near[rays, None] + (k[None, :] + 0.5) * dt[rays, None]  # R' x K
+            idx = self._cell_index(
+                box.to_unit(origins[rays, None, :] + dirs[rays, None, :] * t[..., None])
+            )
+            occ = (t < t_far[rays, None]) & (idx >= 0)
+            occ &= occupied[idx.clamp_min(0)]
+            found = occ.any(dim=1)
+            first = torch.argmax(occ.to(torch.uint8), dim=1)  # the first True where any
+            got = rays[found]
+            hit[got] = t[found, first[found]]
+            pending[got] = False
+        return hit
+
+
+class GridSurfaceEstimate:
+    """Where rays without a measured depth meet a surface, found with few density evaluations
+    and no colour or semantic features. From the first occupied cell of ``grid`` along the ray
+    (``OccupancyGrid.first_hit``: the grid alone), a coarse march in steps of ``step_cells``
+    cells evaluates the density only in occupied cells and stops each ray once its opacity
+    reaches ``min_opacity`` (one half); the estimate is the depth where it does (interpolated
+    within the step). Calling it gives that z-depth (R,), 0 where the ray meets no occupied cell
+    or never gets that opaque: those rays need the full march.
+
+    Against the full occupancy march (``OccupancyGrid.sampling`` with the density): coarser
+    steps (half a cell against the box diagonal / ``march_steps``), a stop at opacity 1/2
+    instead of 0.999, and nothing but the density; the band around the estimate then costs what
+    a pixel with measured depth costs.
+    """
+
+    def __init__(
+        self,
+        grid: OccupancyGrid,
+        box: SceneBox,
+        step_cells: float = 0.5,
+        min_opacity: float = 0.5,
+        chunk_steps: int = 16,
+    ):
+        if not step_cells > 0 or not 0 < min_opacity < 1:
+            raise ValueError(
+                f"GridSurfaceEstimate: step_cells ({step_cells}) must be > 0 and min_opacity "
+                f"({min_opacity}) in (0, 1)"
+            )
+        self.grid, self.box = grid, box
+        self.step_cells, self.min_opacity, self.chunk_steps = step_cells, min_opacity, chunk_steps
+
+    @torch.no_grad()
+    def __call__(
+        self, origins: Tensor, dirs: Tensor, t_near: Tensor, t_far: Tensor, density_fn: DensityFn
+    ) -> Tensor:
+        if density_fn is None:
+            raise ValueError("GridSurfaceEstimate needs density_fn for its coarse march")
+        depth = torch.zeros_like(t_near)
+        step = self.step_cells * self.grid.cell_size(self.box)  # metres
+        hit = self.grid.first_hit(self.box, origins, dirs, t_near, t_far, step=step)
+        rays = torch.nonzero(torch.isfinite(hit)).squeeze(-1)
+        if rays.numel() == 0:
+            return depth
+        o, d, t_far = origins[rays], dirs[rays], t_far[rays]
+        dt = step / d.norm(dim=-1)
+        start = hit[rays] - 0.5 * dt  # first_hit's point is the middle of its step
+        target = -math.log(1.0 - self.min_opacity)  # optical depth of that opacity
+        tau = torch.zeros_like(start)
+        found = torch.zeros_like(start)
+        active = torch.ones_like(start, dtype=torch.bool)
+        occupied = self.grid.occupied.view(-1)
+        n_steps = int(torch.ceil(((t_far - start).clamp_min(0) / dt).max()).item())
+        for s0 in range(0, n_steps, self.chunk_steps):
+            r = torch.nonzero(active & (start + s0 * dt < t_far)).squeeze(-1)
+            if r.numel() == 0:
+                break
+            k = torch.arange(
+                s0, min(s0 + self.chunk_steps, n_steps), device=d.device, dtype=torch.float32
+            )
+            t = start[r, None] + (k[None, :] + 0.5) * dt[r, None]  # R' x K step middles
+            pts = o[r, None, :] + d[r, None, :] * t[..., None]
+            idx = self.grid._cell_index(self.box.to_unit(pts))
+            occ = (t < t_far[r, None]) & (idx >= 0)
+            occ &= occupied[idx.clamp_min(0)]
+            sigma_dt = torch.zeros_like(t)
+            if bool(occ.any()):
+                sigma_dt[occ] = density_fn(pts[occ]) * step
+            total = tau[r, None] + torch.cumsum(sigma_dt, dim=1)
+            crossed = total >= target
+            done = torch.nonzero(crossed.any(dim=1)).squeeze(-1)
+            kk = torch.argmax(crossed[done].to(torch.uint8), dim=1)  # the first step past it
+            sd = sigma_dt[done, kk]
+            frac = ((target - (total[done, kk] - sd)) / sd.clamp_min(1e-10)).clamp(0.0, 1.0)
+            found[r[done]] = t[done, kk] + (frac - 0.5) * dt[r[done]]
+            active[r[done]] = False
+            tau[r] = total[:, -1]
+        depth[rays] = found
+        return depth
+
 
 class RaySampler:
     """A sampler object: ``sampling`` places samples along rays, ``update_every_n_steps``
@@ -460,7 +593,11 @@ class DepthGuidedSampler(RaySampler):
     of the ray (``sample_depth_guided``), so free space is seen too. ``n_spread == 0``
     (rendering a view that has depth): the band only (``sample_band``). Rays without a
     measurement inside the box go to ``fallback`` (e.g. the occupancy march), or, without one,
-    get ``n_band + n_spread`` stratified samples over the whole ray.
+    get ``n_band + n_spread`` stratified samples over the whole ray. With ``estimate`` (e.g. a
+    ``GridSurfaceEstimate``: ``estimate(origins, dirs, t_near, t_far, density_fn)`` -> z-depth,
+    0 = none), rays without a measurement first get an estimated depth and are sampled in the
+    band around it, widened by ``estimate_band_scale`` (the estimate is less certain than a
+    measurement); only rays it finds nothing for go to ``fallback``.
     """
 
     uses_depth = True
@@ -472,16 +609,23 @@ class DepthGuidedSampler(RaySampler):
         band: float,
         band_fraction: float = 0.0,
         fallback: RaySampler | None = None,
+        estimate: Callable[..., Tensor] | None = None,
+        estimate_band_scale: float = 1.0,
     ):
         self.n_band, self.n_spread = n_band, n_spread
         self.band, self.band_fraction = band, band_fraction
         self.fallback = fallback
+        self.estimate, self.estimate_band_scale = estimate, estimate_band_scale
 
     def update_every_n_steps(self, step, density_fn, generator=None) -> None:
         if self.fallback is not None:
             self.fallback.update_every_n_steps(step, density_fn, generator)
 
-    def _guided(self, t_near, t_far, depth, stratified, generator) -> RaySamples:
+    def _guided(self, t_near, t_far, depth, stratified, generator, scale=None) -> RaySamples:
+        # ``scale`` (R,): per-ray widening of the band (estimated depths), None = as configured.
+        band, fraction = self.band, self.band_fraction
+        if scale is not None:
+            band, fraction = band * scale, fraction * scale
         if self.n_spread > 0:
             return sample_depth_guided(
                 t_near,
@@ -489,14 +633,12 @@ class DepthGuidedSampler(RaySampler):
                 depth,
                 self.n_band,
                 self.n_spread,
-                self.band,
-                self.band_fraction,
+                band,
+                fraction,
                 stratified,
                 generator,
             )
-        return sample_band(
-            t_near, t_far, depth, self.n_band, self.band, self.band_fraction, stratified, generator
-        )
+        return sample_band(t_near, t_far, depth, self.n_band, band, fraction, stratified, generator)
 
     def sampling(
         self,
@@ -514,13 +656,24 @@ class DepthGuidedSampler(RaySampler):
         if depth is None:
             depth = torch.zeros_like(t_near)
         has = (depth > 0) & (depth < t_far)
+        scale = None
+        if self.estimate is not None and not bool(has.all()):
+            missing = torch.nonzero(~has).squeeze(-1)
+            depth = depth.clone()
+            depth[missing] = self.estimate(
+                origins[missing], dirs[missing], t_near[missing], t_far[missing], density_fn
+            )
+            has = (depth > 0) & (depth < t_far)
+            if self.estimate_band_scale != 1.0:
+                scale = torch.ones_like(depth)
+                scale[missing] = self.estimate_band_scale
         if self.fallback is None and self.n_spread > 0:
             # Rays without depth: stratified over the whole ray, inside sample_depth_guided.
-            return self._guided(t_near, t_far, depth, stratified, generator)
+            return self._guided(t_near, t_far, depth, stratified, generator, scale)
         if self.fallback is None:
             raise ValueError("DepthGuidedSampler: band-only sampling needs a fallback sampler")
         if bool(has.all()):
-            return self._guided(t_near, t_far, depth, stratified, generator)
+            return self._guided(t_near, t_far, depth, stratified, generator, scale)
         with_d = torch.nonzero(has).squeeze(-1)
         without = torch.nonzero(~has).squeeze(-1)
         parts = []
@@ -529,7 +682,12 @@ class DepthGuidedSampler(RaySampler):
                 (
                     with_d,
                     self._guided(
-                        t_near[with_d], t_far[with_d], depth[with_d], stratified, generator
+                        t_near[with_d],
+                        t_far[with_d],
+                        depth[with_d],
+                        stratified,
+                        generator,
+                        None if scale is None else scale[with_d],
                     ),
                 )
             )

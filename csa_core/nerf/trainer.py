@@ -119,7 +119,8 @@ class NerfTrainer:
             raise ValueError("semantic steps need labels (RayBank.set_labels)")
         nerf, gen = self.nerf, self.generator
         opt = make_adam(nerf.semantic_parameter_groups(), lr or nerf.config.optim.lr, nerf)
-        sampler = nerf.render_sampler(with_depth=self.rays.has_depth)
+        # Rays in depth holes march as they always did (the estimate is for rendering only).
+        sampler = nerf.render_sampler(with_depth=self.rays.has_depth, hole_estimate=False)
         n = rays_per_step or self.rays_per_step
         value = float("nan")
         for _ in range(steps):

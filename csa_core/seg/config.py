@@ -112,25 +112,33 @@ class PretrainConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
 
 
+def official_augment() -> AugmentConfig:
+    """The official code's augmentation (its training datasets' defaults): colour jitter 0.3
+    brightness, contrast and saturation and 0.05 hue, rotation up to 10 degrees, a
+    horizontal flip half the time, and a crop at the working size of the image scaled by
+    1.2 (a fixed 1/1.44 of its area)."""
+    crop = 1.0 / 1.2**2
+    return AugmentConfig(
+        hflip=0.5,
+        rotation_deg=10.0,
+        crop_scale=(crop, crop),
+        crop_aspect_jitter=0.0,
+        brightness=0.3,
+        contrast=0.3,
+        saturation=0.3,
+        hue=0.05,
+    )
+
+
 def paper_pretraining() -> PretrainConfig:
     """The paper's network and input size, DeepLabv3-ResNet101 at 320x240 (built with
     ``weights=None``: nothing is downloaded; the official code starts from an
     ImageNet-pretrained backbone, which ``csa seg pretrain --weights`` can supply from a
     local file), trained as the official pre-training config does."""
-    crop = 1.0 / 1.2**2  # a 320x240 crop of the image scaled by 1.2
     return PretrainConfig(
         arch=PAPER_ARCH,
         size=PAPER_SIZE,
-        augment=AugmentConfig(
-            hflip=0.5,
-            rotation_deg=10.0,
-            crop_scale=(crop, crop),
-            crop_aspect_jitter=0.0,
-            brightness=0.3,
-            contrast=0.3,
-            saturation=0.3,
-            hue=0.05,
-        ),
+        augment=official_augment(),
         train=TrainConfig(
             epochs=PAPER_PRETRAIN_EPOCHS,
             batch_size=PAPER_PRETRAIN_BATCH_SIZE,

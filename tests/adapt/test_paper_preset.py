@@ -14,7 +14,7 @@ from torch import nn
 
 import csa_core.adapt.finetune as finetune
 from csa_core.adapt.config import AdaptConfig, paper
-from csa_core.adapt.finetune import SegFinetuner, adapt_one_step, step_nerf_budget
+from csa_core.adapt.finetune import SegFinetuner, adapt_one_step, step_nerf_budget, training_pairs
 from csa_core.adapt.methods import pretrain_context
 from csa_core.adapt.nerf_training import NerfLabelTrainer
 from csa_core.adapt.pseudo_labels import nerf_config
@@ -70,6 +70,7 @@ def test_the_nerf_is_the_papers():
     assert (f.hidden_dim, f.density_hidden_layers, f.geo_features) == (64, 1, 15)
     assert (f.color_hidden_layers, f.semantic_hidden_layers, f.sh_degree) == (2, 1, 4)
     assert f.semantic_grid_levels == 0  # no semantic feature table (ours)
+    assert f.semantic_detach_geometry is False  # the official head: features undetached
     loss = cfg.loss
     assert (loss.color, loss.depth, loss.semantic, loss.free_space) == (1.0, 0.1, 0.04, 0.0)
     assert (cfg.storage_dtype, cfg.appearance) == ("float32", "none")
@@ -99,6 +100,13 @@ def test_the_network_and_its_training_are_the_papers(pretrained):
     config = paper()
     assert (config.seg.lr, config.seg.batch_size, config.seg.epochs) == (1e-5, 4, 50)
     assert config.seg.schedule == "constant"
+    # The official augmentation: jitter 0.3/0.3/0.3/0.05, rotation 10 degrees, flip 0.5, and
+    # a crop of the image scaled by 1.2.
+    a = config.seg.augment
+    assert (a.brightness, a.contrast, a.saturation, a.hue) == (0.3, 0.3, 0.3, 0.05)
+    assert (a.rotation_deg, a.hflip, a.crop_aspect_jitter) == (10.0, 0.5, 0.0)
+    assert a.crop_scale == pytest.approx((1 / 1.44, 1 / 1.44))
+    assert tuner_dataset_augment(config) == a  # what the training pairs are augmented with
     tuner = SegFinetuner(copy.deepcopy(pretrained), with_mode(config, "joint"), 50, 10)
     assert [g["lr"] for g in tuner.trainer.optimizer.param_groups] == [1e-5]
     assert isinstance(tuner.trainer.optimizer, torch.optim.Adam)
@@ -121,6 +129,14 @@ def test_the_network_and_its_training_are_the_papers(pretrained):
     assert not config.collapse.enabled and not config.pool_batchnorm
     assert config.adabn and config.adabn_placement == "paper"
     assert (config.mode, config.joint.schedule, config.joint.epochs) == ("joint", "batch", 50)
+
+
+def tuner_dataset_augment(config):
+    """The augmentation the adaptation's training pairs get under ``config``."""
+    images = [np.zeros((8, 8, 3), np.uint8)]
+    labels = [np.ones((8, 8), np.int64)]
+    dataset, _, _ = training_pairs(images, labels, augment=config.seg.augment)
+    return dataset.transform.config
 
 
 class Recorder:

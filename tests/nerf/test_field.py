@@ -124,3 +124,24 @@ def test_spherical_harmonics_shapes_and_constant_term():
     torch.testing.assert_close(
         spherical_harmonics(d, 4)[:, 0], torch.full((10,), 0.28209479177387814)
     )
+
+
+def test_the_official_semantic_head_lets_the_semantic_loss_reach_the_geometry_features():
+    """``semantic_detach_geometry=False`` (the paper preset): the semantic loss reaches the
+    density MLP and the hash table through the features, never the colour head; the
+    rendering weights stay detached (only the features carry it)."""
+    enc = HashEncodingConfig(
+        num_levels=4, log2_table_size=12, base_resolution=4, finest_resolution=64
+    )
+    cfg = FieldConfig(encoding=enc, semantic_grid_levels=0, semantic_detach_geometry=False)
+    field = SemanticField(cfg, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        field.density_mlp[-1].bias[0] = 3.0
+    out = _render(field)
+    semantic_loss(out["semantics"], torch.tensor([1, 5, 0, 40, 12, 12, 3, 7])).backward()
+    grads = {n: (0.0 if p.grad is None else float(p.grad.abs().sum())) for n, p in field.named_parameters()}
+    assert grads["encoding.table"] > 0
+    assert sum(g for n, g in grads.items() if n.startswith("density_mlp")) > 0
+    assert all(g == 0 for n, g in grads.items() if n.startswith("color_mlp"))
+    # The density output itself gets no semantic gradient: its row of the last layer is untouched.
+    assert float(field.density_mlp[-1].weight.grad[0].abs().sum()) == 0.0

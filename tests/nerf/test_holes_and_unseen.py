@@ -1,0 +1,308 @@
+"""Rendering views with depth holes (surface estimated from the occupancy grid instead of a
+full march) and labelling surfaces no training camera saw as unknown."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from csa_core.data.camera import backproject
+from csa_core.data.nyu40 import UNKNOWN
+from csa_core.nerf.normalization import SceneBox
+from csa_core.nerf.rays import RayBank, image_rays
+from csa_core.nerf.render import render_frames, render_pseudo_labels
+from csa_core.nerf.rendering import accumulate_along_rays, render_weights
+from csa_core.nerf.samplers import (
+    DepthGuidedSampler,
+    GridSurfaceEstimate,
+    OccupancyGrid,
+    OccupancySampler,
+)
+from csa_core.nerf.trainer import NerfTrainer
+
+BOX = SceneBox((0.0, 0.0, 0.0), 3.0)
+RADIUS = 0.6
+PLANE_Z = 0.3
+
+
+def _camera_rays(n: int = 12, spread: float = 0.45):
+    """Unit-z rays (t = z-depth) of a pinhole camera at z = -2 looking along +z."""
+    u = torch.linspace(-spread, spread, n)
+    yy, xx = torch.meshgrid(u, u, indexing="ij")
+    d = torch.stack([xx, yy, torch.ones_like(xx)], -1).reshape(-1, 3)
+    o = torch.tensor([0.0, 0.0, -2.0]).expand_as(d).contiguous()
+    return o, d
+
+
+def _sphere_density(points: torch.Tensor) -> torch.Tensor:
+    return (points.norm(dim=-1) < RADIUS).float() * 200.0
+
+
+def _sphere_depth(o, d):
+    a = (d * d).sum(-1)
+    b = 2 * (o * d).sum(-1)
+    c = (o * o).sum(-1) - RADIUS**2
+    disc = b * b - 4 * a * c
+    return (-b - disc.clamp_min(0).sqrt()) / (2 * a), disc
+
+
+def _sphere_grid() -> OccupancyGrid:
+    grid = OccupancyGrid(resolution=32, threshold=0.01, march_steps=512)
+    grid.update(BOX, _sphere_density, decay=0.0, generator=torch.Generator().manual_seed(0))
+    grid.update(BOX, _sphere_density, decay=1.0, generator=torch.Generator().manual_seed(1))
+    return grid
+
+
+class _Counting:
+    """Wraps a sampler or density and counts the rays (or points) it is given."""
+
+    def __init__(self, inner):
+        self.inner, self.count = inner, 0
+
+    def __call__(self, points):
+        self.count += points.shape[0]
+        return self.inner(points)
+
+    def sampling(self, origins, dirs, t_near, t_far, **kw):
+        self.count += origins.shape[0]
+        return self.inner.sampling(origins, dirs, t_near, t_far, **kw)
+
+
+# -- the grid's first occupied cell --------------------------------------------------------
+
+
+def test_first_hit_finds_a_plane_within_one_cell_and_inf_where_the_ray_meets_none():
+    grid = OccupancyGrid(resolution=16, threshold=0.01, march_steps=64)
+    grid.occupied.zero_()
+    # A plane z = PLANE_Z over x < 0.1 only: marks one slab of cells.
+    xs = torch.linspace(-1.4, 0.1, 200)
+    px, py = torch.meshgrid(xs, torch.linspace(-1.4, 1.4, 200), indexing="ij")
+    grid.mark_points(BOX, torch.stack([px, py, torch.full_like(px, PLANE_Z)], -1).reshape(-1, 3))
+    o, d = _camera_rays()
+    t_near, t_far = BOX.ray_interval(o, d, near=0.05)
+    hit = grid.first_hit(BOX, o, d, t_near, t_far)
+    t_plane = PLANE_Z - o[:, 2]  # z-depth of the plane along unit-z rays
+    x_plane = o[:, 0] + d[:, 0] * t_plane
+    cell = grid.cell_size(BOX)
+    on = x_plane < 0.1 - cell  # clearly over the marked part of the plane
+    off = x_plane > 0.1 + 2 * cell  # clearly past its edge: nothing else is occupied
+    assert on.any() and off.any()
+    assert float((hit[on] - t_plane[on]).abs().max()) <= cell
+    assert torch.isinf(hit[off]).all()
+    # The hit lies in an occupied cell.
+    pts = o[on] + d[on] * hit[on, None]
+    assert grid.occupied.view(-1)[grid._cell_index(BOX.to_unit(pts))].all()
+
+
+def test_grid_surface_estimate_finds_the_sphere_and_nothing_beside_it():
+    grid = _sphere_grid()
+    o, d = _camera_rays(16)
+    t_near, t_far = BOX.ray_interval(o, d, near=0.05)
+    t_true, disc = _sphere_depth(o, d)
+    density = _Counting(_sphere_density)
+    est = GridSurfaceEstimate(grid, BOX)(o, d, t_near, t_far, density)
+    hit, miss = disc > 0.02, disc < -0.02
+    assert float((est - t_true)[hit].abs().max()) < 0.03  # half a cell is 0.047
+    assert torch.all(est[miss] == 0)
+    # Far fewer density evaluations than the full march.
+    march = _Counting(_sphere_density)
+    grid.sampling(BOX, o, d, t_near, t_far, density_fn=march)
+    assert density.count < 0.5 * march.count, (density.count, march.count)
+    # A faint surface (opacity below one half along the whole ray) gives no estimate.
+    faint = GridSurfaceEstimate(grid, BOX)(
+        o, d, t_near, t_far, lambda p: 0.002 * _sphere_density(p)
+    )
+    assert torch.all(faint == 0)
+    with pytest.raises(ValueError, match="density_fn"):
+        GridSurfaceEstimate(grid, BOX)(o, d, t_near, t_far, None)
+
+
+def test_rays_in_holes_render_in_the_band_of_the_estimate_and_misses_fall_back():
+    grid = _sphere_grid()
+    o, d = _camera_rays(16)
+    t_near, t_far = BOX.ray_interval(o, d, near=0.05)
+    t_true, disc = _sphere_depth(o, d)
+    hit = disc > 0.05
+    depth = torch.where(hit, t_true, torch.zeros_like(t_true))
+    holes = torch.zeros_like(hit)
+    holes[::3] = True  # a third of the rays have no measurement, on and off the sphere
+    depth[holes] = 0.0
+    results = {}
+    for name, estimate in {"march": None, "estimate": GridSurfaceEstimate(grid, BOX)}.items():
+        fallback = _Counting(OccupancySampler(grid, BOX, max_samples=None))
+        sampler = DepthGuidedSampler(8, 0, band=0.05, fallback=fallback, estimate=estimate)
+        s = sampler.sampling(o, d, t_near, t_far, depth=depth, density_fn=_sphere_density)
+        per_ray = torch.bincount(s.ray_indices, minlength=o.shape[0])
+        pts = o[s.ray_indices] + d[s.ray_indices] * s.t_mids[:, None]
+        w, _, _ = render_weights(_sphere_density(pts), s, d.norm(dim=-1))
+        results[name] = (
+            accumulate_along_rays(w, s.t_mids[:, None], s).squeeze(-1),
+            accumulate_along_rays(w, None, s).squeeze(-1),
+            per_ray,
+            fallback.count,
+        )
+    (dm, om, _, fm), (de, oe, pe, fe) = results["march"], results["estimate"]
+    # Without the estimate every ray without depth marches; with it only those it finds no
+    # surface for: all that miss the sphere, few of the others.
+    none = depth == 0
+    miss, clear = disc < -0.05, holes & (disc > 0.2)
+    assert fm == int(none.sum())
+    assert fe == int((none & miss).sum())
+    assert torch.all(pe[clear] == 8)  # band samples around the estimate
+    # The same surface either way.
+    assert float((oe - om)[clear].abs().max()) < 0.02
+    assert float((de - dm)[clear].abs().max()) < 0.02
+    assert float(oe[miss].max()) < 1e-3  # misses stay empty
+    # The band around an estimate can be wider than around a measurement.
+    wide = DepthGuidedSampler(
+        8,
+        0,
+        band=0.05,
+        fallback=fallback,
+        estimate=GridSurfaceEstimate(grid, BOX),
+        estimate_band_scale=2.0,
+    ).sampling(o, d, t_near, t_far, depth=depth, density_fn=_sphere_density)
+    lo = torch.full_like(t_near, float("inf")).scatter_reduce(
+        0, wide.ray_indices, wide.t_starts, "amin"
+    )
+    hi = torch.zeros_like(t_near).scatter_reduce(0, wide.ray_indices, wide.t_ends, "amax")
+    measured = (depth > 0) & (disc > 0.2)
+    torch.testing.assert_close((hi - lo)[measured], torch.full_like(lo[measured], 0.1))
+    torch.testing.assert_close((hi - lo)[clear], torch.full_like(lo[clear], 0.2))
+
+
+# -- a fitted scene ------------------------------------------------------------------------
+
+
+def _with_holes(depth: np.ndarray, seed: int = 0) -> np.ndarray:
+    """``depth`` with a rectangle and scattered pixels set to 0 (no measurement)."""
+    out = depth.copy()
+    h, w = out.shape
+    out[h // 4 : h // 2, w // 4 : 3 * w // 4] = 0
+    rng = np.random.default_rng(seed)
+    out[rng.random(out.shape) < 0.15] = 0
+    return out
+
+
+def test_hole_labels_agree_with_the_full_march_on_a_fitted_scene(tiny_nerf, tiny_scene):
+    marched = copy.deepcopy(tiny_nerf)
+    marched.config.sampler.render_hole_estimate = False
+    assert tiny_nerf.config.sampler.render_hole_estimate  # the default
+    agree, total = 0, 0
+    for f in tiny_scene.train_frames[::3]:
+        holes = _with_holes(f.depth)
+        hole = (holes == 0) & (f.depth > 0)
+        poses = [(f.name, f.pose)]
+        (new,) = render_frames(tiny_nerf, poses, tiny_scene.intrinsics, [holes], color=False)
+        (old,) = render_frames(marched, poses, tiny_scene.intrinsics, [holes], color=False)
+        # Pixels with depth are untouched by the estimate.
+        assert np.array_equal(new.labels[~hole], old.labels[~hole])
+        agree += int((new.labels[hole] == old.labels[hole]).sum())
+        total += int(hole.sum())
+    assert total > 200
+    assert agree / total > 0.9, agree / total
+
+
+def test_semantic_steps_keep_marching_the_holes(tiny_nerf, tiny_scene):
+    """Training samples never change: the semantic steps' sampler has no estimate."""
+    nerf = copy.deepcopy(tiny_nerf)
+    real, made = nerf.render_sampler, []
+
+    def spy(*args, **kw):
+        made.append(real(*args, **kw))
+        return made[-1]
+
+    nerf.render_sampler = spy
+    rays = RayBank(tiny_scene.train_frames[:2], tiny_scene.intrinsics, label_folder="label-nyu40")
+    NerfTrainer(nerf, rays, schedule_steps=1).semantic_steps(1, rays_per_step=32)
+    assert len(made) == 1 and isinstance(made[0], DepthGuidedSampler)
+    assert made[0].estimate is None
+
+
+# -- unseen surfaces -----------------------------------------------------------------------
+
+
+def _yaw(degrees: float) -> np.ndarray:
+    """A camera-frame turn about the camera's vertical axis (right-multiply a pose)."""
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]])
+
+
+def _project(points: np.ndarray, pose: np.ndarray, intr) -> tuple[np.ndarray, ...]:
+    p = (points - pose[:3, 3]) @ pose[:3, :3]
+    z = p[:, 2]
+    u = p[:, 0] / np.maximum(z, 1e-6) * intr.fx + intr.cx
+    v = p[:, 1] / np.maximum(z, 1e-6) * intr.fy + intr.cy
+    return z, u, v
+
+
+def test_surfaces_outside_every_training_frustum_render_unknown(tiny_nerf, tiny_scene):
+    """One training camera left, turned 35 degrees away from a view: the pixels of that view
+    whose measured surface point the camera does not see get 0, the others keep the class
+    they get without the option."""
+    intr = tiny_scene.intrinsics
+    f = tiny_scene.train_frames[3]
+    a = np.asarray(f.pose, np.float64) @ _yaw(35.0)
+    nerf = copy.deepcopy(tiny_nerf)
+    nerf.info.train_poses = a[None]
+    pts = backproject(f.depth.astype(np.float64), intr, np.asarray(f.pose, np.float64))
+    z, u, v = _project(pts.reshape(-1, 3), a, intr)
+    inside = (z > 0.2) & (u > 1) & (u < intr.width - 1) & (v > 1) & (v < intr.height - 1)
+    outside = (z < 0) | (u < -1) | (u > intr.width + 1) | (v < -1) | (v > intr.height + 1)
+    inside, outside = inside.reshape(f.depth.shape), outside.reshape(f.depth.shape)
+    assert inside.mean() > 0.2 and outside.mean() > 0.2
+    has = f.depth > 0
+    poses = [(f.name, f.pose)]
+    (plain,) = render_frames(nerf, poses, intr, [f.depth], color=False)
+    (masked,) = render_frames(nerf, poses, intr, [f.depth], color=False, unseen_unknown=True)
+    assert UNKNOWN not in plain.labels
+    assert np.all(masked.labels[outside & has] == UNKNOWN)
+    assert np.all(masked.confidence[outside & has] == 0)
+    keep = inside & has
+    assert np.array_equal(masked.labels[keep], plain.labels[keep])
+    # The config switches it on too (pseudo-labels for adaptation).
+    nerf.config.render_unseen_unknown = True
+    (cfg,) = render_frames(nerf, poses, intr, [f.depth], color=False)
+    assert np.array_equal(cfg.labels, masked.labels)
+
+
+def test_rays_that_render_nothing_are_unknown(tiny_nerf, tiny_scene):
+    nerf = copy.deepcopy(tiny_nerf)
+    nerf.grid.occupied.zero_()  # no surface anywhere for rays without depth
+    f = tiny_scene.train_frames[0]
+    holes = f.depth.copy()
+    holes[: holes.shape[0] // 2] = 0
+    (view,) = render_frames(
+        nerf, [(f.name, f.pose)], tiny_scene.intrinsics, [holes], color=False, unseen_unknown=True
+    )
+    assert np.all(view.labels[holes == 0] == UNKNOWN)
+    # A training view's own measured surface is seen (by that camera).
+    assert np.all(view.labels[holes > 0] != UNKNOWN)
+
+
+def test_pseudo_labels_with_unknown_are_ignored_by_the_segmentation_loss(tiny_nerf, tiny_scene):
+    from csa_core.seg.losses import IGNORE_INDEX, nyu40_to_target
+
+    nerf = copy.deepcopy(tiny_nerf)
+    nerf.info.train_poses = (np.asarray(tiny_scene.train_frames[0].pose) @ _yaw(35.0))[None]
+    labels = render_pseudo_labels(nerf, tiny_scene, "train", unseen_unknown=True)
+    stack = torch.as_tensor(np.stack(list(labels.values())))
+    assert bool((stack == UNKNOWN).any()) and bool((stack != UNKNOWN).any())
+    target = nyu40_to_target(stack)
+    assert torch.all((target == IGNORE_INDEX) == (stack == UNKNOWN))
+
+
+def test_seen_surface_uses_the_measured_depth_first(tiny_nerf, tiny_scene):
+    from csa_core.nerf.render import seen_surface
+
+    f = tiny_scene.train_frames[0]
+    origins, dirs = image_rays(tiny_scene.intrinsics, f.pose)
+    n = origins.shape[0]
+    out = {"depth": torch.zeros(n), "opacity": torch.zeros(n)}
+    depth = torch.as_tensor(f.depth.reshape(-1))
+    seen = seen_surface(tiny_nerf, origins, dirs, out, depth)
+    assert torch.equal(seen, depth > 0)  # a training camera sees its own measured surface
+    assert not seen_surface(tiny_nerf, origins, dirs, out).any()  # nothing rendered, no depth
