@@ -159,7 +159,7 @@ def _label_fusion(scene_dir: Path, out: Path, size: tuple[int, int], steps: int,
     }
 
 
-def _print_summary(console, result, adabn: list[float]) -> list[dict]:
+def _print_summary(console, result, adabn: list[float], seed: int) -> list[dict]:
     from rich.table import Table
 
     from csa_core.cli.demo_adapt import summary_rows
@@ -182,6 +182,12 @@ def _print_summary(console, result, adabn: list[float]) -> list[dict]:
     gain = mean["after_all"] - mean["pretrained"]
     verdict = "beats" if gain > 0 else "does NOT beat"
     console.print(f"the adapted network {verdict} the pre-trained one on the new scenes: {mean['after_all']:.1f}% vs {mean['pretrained']:.1f}% mean val mIoU ({gain:+.1f} points)")
+    console.print(
+        f"This is one run (seed {seed}): "
+        "a single run moves by several points with the seed and the machine's floating-point paths, "
+        "so its ordering is not a result. Over seeds: csa experiment multi-step --seeds 0,1,2 "
+        "(README.md and benchmarks/RESULTS.md report it as mean +- std)."
+    )
     return rows
 
 
@@ -300,7 +306,7 @@ def run_demo(args: argparse.Namespace) -> int:
     result = run_continual(model, target_scenes, config, out / "continual", pretrain_scenes=pre_scenes)
     report["seconds"]["adapt"] = time.perf_counter() - t
     console.print(format_table(result))
-    report["summary"] = _print_summary(console, result, adabn)
+    report["summary"] = _print_summary(console, result, adabn, args.seed)
     report["continual"] = {"results": str(out / "continual" / "results.json"), "metrics": result.metrics}
     plot = out / "plots" / "miou_per_step.png"
     plot.parent.mkdir(parents=True, exist_ok=True)

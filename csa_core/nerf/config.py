@@ -90,6 +90,12 @@ class SamplerConfig:
     render_hole_estimate: bool = True
     render_estimate_step: float = 0.5  # hole estimate: march step, in occupancy cells
     render_estimate_band_scale: float = 2.0  # hole estimate: band width against a measurement's
+    # Ours: colour (and depth) of a view with depth from the band too, normalised by the band's
+    # opacity (the colour of the surface the band holds); rays whose band opacity is below
+    # ``render_band_min_opacity`` (a partly fitted field, a floater in front) march the whole
+    # ray. False = every ray's colour and depth from the ``render`` sampler (as the paper).
+    render_band_color: bool = False
+    render_band_min_opacity: float = 0.5
     uniform_samples: int = 256  # docs/method.md "Reference numbers": 256 uniform samples per ray
     importance_samples: int = (
         256  # docs/method.md "Reference numbers": 256 importance samples per ray
@@ -205,6 +211,7 @@ def _fast() -> NerfConfig:
             train="depth",
             render="occupancy",
             render_depth_guided=True,
+            render_band_color=True,
             uniform_samples=64,
             importance_samples=64,
         ),

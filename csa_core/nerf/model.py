@@ -296,13 +296,14 @@ class SemanticNerf(nn.Module):
         field's image comes out dark. So with ``color`` the default sampler renders colour,
         depth and opacity with the ``render`` sampler (as for a view without depth) and only
         the semantics in the band; without ``color`` everything comes from the band (depth
-        and opacity then describe the band, not the whole ray)."""
-        if (
-            sampler is None
-            and color
-            and depth is not None
-            and self.config.sampler.render_depth_guided
-        ):
+        and opacity then describe the band, not the whole ray). With
+        ``SamplerConfig.render_band_color`` colour and depth come from the band as well,
+        normalised by its opacity, where that opacity is high enough
+        (:meth:`_render_band_color`)."""
+        s = self.config.sampler
+        if sampler is None and color and depth is not None and s.render_depth_guided:
+            if s.render_band_color and self.appearance is None:
+                return self._render_band_color(origins, dirs, depth, semantics, chunk)
             out = self.render_rays(
                 origins, dirs, semantics=False, chunk=chunk, appearance=appearance
             )
@@ -329,6 +330,36 @@ class SemanticNerf(nn.Module):
         if not parts:
             return {}
         return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+    @torch.inference_mode()
+    def _render_band_color(
+        self, origins: Tensor, dirs: Tensor, depth: Tensor, semantics: bool, chunk: int | None
+    ) -> dict[str, Tensor]:
+        """Colour, depth and semantics of rays with measured depth from the band samples
+        alone. Colour and depth are divided by the band's opacity (the composite of the
+        surface the band holds, as the class distributions already are); a ray whose band
+        opacity is below ``render_band_min_opacity`` takes colour, depth and opacity from the
+        whole ray (the ``render`` sampler), its semantics still from the band. ``opacity`` is
+        the band's where the band is used."""
+        s = self.config.sampler
+        band = self.render_sampler(with_depth=True)
+        out = self.render_rays(origins, dirs, band, depth, semantics=semantics, chunk=chunk)
+        if not out:
+            return out
+        opacity = out["opacity"]
+        ok = opacity >= s.render_band_min_opacity
+        scale = torch.where(ok, 1.0 / opacity.clamp_min(1e-6), torch.ones_like(opacity))
+        out["rgb"] = out["rgb"] * scale[:, None]
+        out["depth"] = out["depth"] * scale
+        miss = torch.nonzero(~ok).squeeze(-1)
+        if miss.numel():
+            whole = self.render_rays(origins[miss], dirs[miss], semantics=False, chunk=chunk)
+            for key in ("rgb", "depth", "opacity"):
+                if whole:
+                    out[key][miss] = whole[key]
+                else:  # no sample anywhere on those rays: blank, as a whole render would be
+                    out[key][miss] = 0.0
+        return out
 
     # -- training ---------------------------------------------------------------------------
 

@@ -231,7 +231,9 @@ def test_views_with_depth_take_colour_from_the_full_ray_and_labels_from_the_band
     from csa_core.nerf.rays import image_rays
     from csa_core.nerf.render import render_frames, render_image
 
-    nerf = fit_semantic_nerf(tiny_scene, "label-nyu40", tiny_config(steps=30), progress=False)[0]
+    cfg = tiny_config(steps=30)
+    cfg.sampler.render_band_color = False  # the paper's way; the band's colour: the next test
+    nerf = fit_semantic_nerf(tiny_scene, "label-nyu40", cfg, progress=False)[0]
     assert nerf.config.sampler.render_depth_guided
     f = tiny_scene.val_frames[0]
     with_depth = render_image(nerf, f.pose, tiny_scene.intrinsics, depth=f.depth)
@@ -252,6 +254,44 @@ def test_views_with_depth_take_colour_from_the_full_ray_and_labels_from_the_band
     band_psnr = psnr(float(np.mean((band_only["rgb"].clamp(0, 1).numpy() - target) ** 2)))
     rendered_psnr = psnr(float(np.mean((with_depth.color.reshape(-1, 3) / 255.0 - target) ** 2)))
     assert rendered_psnr > band_psnr + 3.0, (rendered_psnr, band_psnr)
+
+
+def test_band_colour_is_normalised_and_falls_back_to_the_whole_ray_where_the_band_is_thin(tiny_scene):
+    """``render_band_color`` (the fast preset): colour and depth of a view with depth come
+    from the band divided by its opacity; rays whose band holds too little opacity march
+    the whole ray. The image is about as good as the whole-ray render, labels are the same."""
+    import torch
+
+    from csa_core.nerf.fit import fit_semantic_nerf
+    from csa_core.nerf.losses import psnr
+    from csa_core.nerf.rays import image_rays
+    from csa_core.nerf.render import render_image
+
+    nerf = fit_semantic_nerf(tiny_scene, "label-nyu40", tiny_config(steps=200), progress=False)[0]
+    s = nerf.config.sampler
+    assert s.render_band_color and s.render_depth_guided
+    f = tiny_scene.val_frames[0]
+    band = render_image(nerf, f.pose, tiny_scene.intrinsics, depth=f.depth)
+    s.render_band_color = False
+    whole = render_image(nerf, f.pose, tiny_scene.intrinsics, depth=f.depth)
+    s.render_band_color = True
+    target = f.color.astype(np.float64) / 255.0
+    band_psnr = psnr(float(np.mean((band.color / 255.0 - target) ** 2)))
+    whole_psnr = psnr(float(np.mean((whole.color / 255.0 - target) ** 2)))
+    assert band_psnr > whole_psnr - 1.0, (band_psnr, whole_psnr)
+    assert np.array_equal(band.labels, whole.labels)
+
+    # Which rays used the band: those whose band opacity reaches the threshold; the others
+    # carry exactly the whole ray's colour.
+    origins, dirs = image_rays(tiny_scene.intrinsics, f.pose)
+    raw = nerf.render_rays(origins, dirs, nerf.render_sampler(with_depth=True), torch.as_tensor(f.depth.reshape(-1)), semantics=False)
+    used = (raw["opacity"] >= s.render_band_min_opacity).numpy()
+    assert 0.2 < used.mean(), used.mean()  # the band carries most rays of a fitted field
+    h, w = f.depth.shape
+    used = used.reshape(h, w)
+    assert np.array_equal(band.color[~used], whole.color[~used])
+    expected = (raw["rgb"] / raw["opacity"][:, None]).clamp(0, 1).numpy().reshape(h, w, 3)
+    assert np.abs(band.color[used] / 255.0 - expected[used]).max() <= 1.0 / 255 + 1e-6
 
 
 def test_an_empty_occupancy_grid_renders_a_blank_view_instead_of_failing(tiny_nerf, tiny_scene):
