@@ -50,6 +50,24 @@ class ContinualResult:
     memory_bytes: dict[str, int] = field(default_factory=dict)
     seconds: float = 0.0
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ContinualResult:
+        """The inverse of :meth:`to_dict` (``None`` in R, b and the metrics back to NaN)."""
+
+        def nan(v: Any) -> float:
+            return float("nan") if v is None else float(v)
+
+        return cls(
+            scenes=list(d["scenes"]),
+            R=np.array([[nan(v) for v in row] for row in d["R"]], dtype=np.float64),
+            b=np.array([nan(v) for v in d["b"]], dtype=np.float64),
+            metrics={k: nan(v) for k, v in d["metrics"].items()},
+            steps=list(d.get("steps", [])),
+            config=dict(d.get("config", {})),
+            memory_bytes=dict(d.get("memory_bytes", {})),
+            seconds=float(d.get("seconds", 0.0)),
+        )
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "scenes": self.scenes,

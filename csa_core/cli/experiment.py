@@ -84,6 +84,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                 help="every method with AdaBN (BatchNorm statistics re-estimated on each "
                 "scene's camera images), without, or both side by side (default: the preset's, on)",
             )
+            e.add_argument(
+                "--resume",
+                action="store_true",
+                help="reuse the runs an earlier invocation with the same --out finished (same "
+                "scenes, method, config and pre-trained network); do the others",
+            )
         add_set_argument(
             e, "AdaptConfig of every run", "collapse.enabled=false or replay.buffer_size=24"
         )
@@ -120,6 +126,7 @@ def run_experiment_command(args: argparse.Namespace) -> int:
         allowed_methods=allowed_methods(name),
         adabn=getattr(args, "adabn", None),
         overrides=args.set,
+        resume=getattr(args, "resume", False),
     )
     note = paper_network_note(args.preset, inputs.card.arch, inputs.size)
     if note:

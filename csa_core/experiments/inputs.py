@@ -9,6 +9,7 @@ runs are independent and repeatable.
 from __future__ import annotations
 
 import copy
+import json
 import platform
 import shutil
 import sys
@@ -17,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from csa_core.adapt.config import MODES, AdaptConfig, preset
@@ -110,6 +112,8 @@ class ExperimentInputs:
     adabn: str | None = None  # "on", "off" or "both" (None: the preset's AdaptConfig.adabn)
     # ``--set KEY=VALUE`` items, applied to every run's config after everything else
     overrides: list[str] = field(default_factory=list)
+    # Reuse runs an earlier invocation finished (``--resume``): see :meth:`finished_run`.
+    resume: bool = False
 
     def network(self) -> SegmentationNet:
         """A fresh copy of the pre-trained network (runs must not share weights)."""
@@ -123,6 +127,35 @@ class ExperimentInputs:
             shutil.rmtree(folder)
         folder.mkdir(parents=True)
         return folder
+
+    def finished_run(self, parts: Sequence[str], config: AdaptConfig, method: str, b: np.ndarray):
+        """With :attr:`resume`, the ``ContinualResult`` an earlier invocation wrote to
+        ``out/runs/<parts>/results.json``, if that run finished (its metrics are written
+        last) with the same scenes, pre-training scenes, method and config, and the same
+        pre-trained network (``b``, the network's validation mIoU per scene, must match
+        exactly); else ``None`` and the run is done again."""
+        from csa_core.adapt.continual import ContinualResult
+
+        if not self.resume:
+            return None
+        path = self.out.joinpath("runs", *parts, "results.json")
+        try:
+            stored = json.loads(path.read_text())
+            result = ContinualResult.from_dict(stored)
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        recorded = dict(result.config)
+        expected = json.loads(json.dumps(config.to_dict(), default=float))
+        same = (
+            result.metrics
+            and result.scenes == [s.name for s in self.scenes]
+            and recorded.pop("method", None) == method
+            and recorded.pop("pretrain_scenes", None) == [s.name for s in self.pretrain_scenes]
+            and {k: v for k, v in recorded.items() if k in expected} == expected
+            and result.b.shape == b.shape
+            and np.array_equal(result.b, b)
+        )
+        return result if same else None
 
     def config(self, seed: int, mode: str | None = None, adabn: bool | None = None) -> AdaptConfig:
         """The preset's config with every seed set to ``seed``, ``mode`` (or the inputs'
@@ -183,6 +216,7 @@ def load_inputs(
     need_ground_truth: bool = True,
     adabn: str | None = None,
     overrides: Sequence[str] = (),
+    resume: bool = False,
 ) -> ExperimentInputs:
     """Check and load everything an experiment needs. ``size`` defaults to the size the
     network was trained at (then the scenes' own); ``methods`` must be in ``allowed_methods``;
@@ -233,4 +267,5 @@ def load_inputs(
         methods=list(methods) if methods is not None else None,
         adabn=adabn,
         overrides=overrides,
+        resume=resume,
     )

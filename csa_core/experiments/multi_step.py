@@ -7,14 +7,19 @@ both`` runs every method with and without AdaBN (``AdaptConfig.adabn``, which ev
 honours, CoTTA included), so a method's gain can be told apart from AdaBN's. Per step i the
 table shows "Adapt", R[i, i] (the scene just adapted to), and "Previous", the mean of R[i, j]
 over the scenes j < i seen before (forgetting shows here), then ACC, A, FWT and BWT; the plot
-draws both rows per method over the steps.
+draws both rows per method over the steps. ``--resume`` reuses the runs an earlier
+invocation into the same ``--out`` finished with the same inputs
+(``ExperimentInputs.finished_run``) and does the rest: a long experiment can be stopped and
+continued, or split over processes that write different methods into copies of one folder.
 """
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
-from csa_core.adapt.continual import run_continual
+from csa_core.adapt.continual import run_continual, val_mious
 from csa_core.adapt.methods import METHODS
 from csa_core.eval.continual import previous_row
 from csa_core.experiments.inputs import ExperimentInputs
@@ -26,6 +31,8 @@ from csa_core.experiments.report import (
     mean_std,
     pct,
 )
+
+log = logging.getLogger(__name__)
 
 NAME = "multi-step"
 DEFAULT_METHODS: tuple[str, ...] = METHODS
@@ -55,19 +62,27 @@ def run(inputs: ExperimentInputs) -> ExperimentReport:
     entries = [(m, a) for m in methods for a in variants]
     results: dict[tuple[str, bool], list] = {e: [] for e in entries}
     runs = []
+    # With --resume, the pre-trained network's scores identify it in earlier runs' records.
+    b = val_mious(inputs.network(), inputs.scenes, inputs.device) if inputs.resume else None
     for method, adabn in entries:
         for seed in inputs.seeds:
             config = inputs.config(seed, adabn=adabn)
-            work = inputs.run_folder(NAME, method, f"adabn-{adabn_name(adabn)}", f"seed{seed}")
-            result = run_continual(
-                inputs.network(),
-                inputs.scenes,
-                config,
-                work,
-                inputs.pretrain_scenes,
-                save_model=False,
-                method=method,
-            )
+            parts = (NAME, method, f"adabn-{adabn_name(adabn)}", f"seed{seed}")
+            work = inputs.out.joinpath("runs", *parts)
+            result = inputs.finished_run(parts, config, method, b) if b is not None else None
+            if result is not None:
+                log.info("%s, AdaBN %s, seed %d: finished earlier, reused (--resume)", method, adabn_name(adabn), seed)
+            else:
+                work = inputs.run_folder(*parts)
+                result = run_continual(
+                    inputs.network(),
+                    inputs.scenes,
+                    config,
+                    work,
+                    inputs.pretrain_scenes,
+                    save_model=False,
+                    method=method,
+                )
             results[(method, adabn)].append(result)
             runs.append(
                 {

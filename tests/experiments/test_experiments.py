@@ -270,3 +270,37 @@ def test_bad_input_is_one_line_and_exit_2(workspace, tmp_path, capsys, change, m
     assert stderr.startswith("csa: error: ") and message in stderr
     assert len(stderr.strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_multi_step_resume_reuses_finished_runs_and_redoes_changed_ones(workspace, tmp_path, capsys, monkeypatch):
+    """``--resume``: runs an earlier invocation finished with the same inputs are read back,
+    not run again, and the table is the same; a run whose config changed, or one that never
+    finished, is done again."""
+    import csa_core.experiments.multi_step as multi_step
+
+    argv = common(workspace, tmp_path, "multi-step", "--methods", "finetune", "--seeds", "0,1")
+    code, first, _ = csa(capsys, *argv)
+    assert code == 0
+    ran: list[tuple[str, int]] = []
+    real = multi_step.run_continual
+
+    def counting(model, scenes, config, out, *args, **kwargs):
+        ran.append((kwargs["method"], config.seg.seed))
+        return real(model, scenes, config, out, *args, **kwargs)
+
+    monkeypatch.setattr(multi_step, "run_continual", counting)
+    # Seed 1's run "stopped" before its end: its record has no metrics yet.
+    seed1 = tmp_path / "runs" / "multi-step" / "finetune" / "adabn-on" / "seed1" / "results.json"
+    record = json.loads(seed1.read_text())
+    record["metrics"] = {}
+    seed1.write_text(json.dumps(record))
+    code, again, _ = csa(capsys, *argv, "--resume")
+    assert code == 0 and ran == [("finetune", 1)]  # seed 0 reused, seed 1 redone
+    assert again.split("wrote")[0] == first.split("wrote")[0]  # the same table
+
+    ran.clear()
+    code, _, _ = csa(capsys, *argv, "--resume", "--set", "seg.lr=3e-5")
+    assert code == 0 and ran == [("finetune", 0), ("finetune", 1)]  # another config: both again
+    ran.clear()
+    code, _, _ = csa(capsys, *argv)  # without --resume every run is done again
+    assert code == 0 and len(ran) == 2
