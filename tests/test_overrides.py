@@ -230,3 +230,18 @@ def test_demo_and_nerf_fit_take_set(tmp_path):
     cfg = fit_config(build_parser().parse_args([*argv, "--set", "optim.steps=70", "--set", "loss.free_space=0"]))
     assert (cfg.optim.steps, cfg.storage_dtype, cfg.loss.free_space) == (70, "float32", 0.0)
     assert fit_config(build_parser().parse_args(argv)).optim.steps == 50
+
+
+def test_nerf_preset_fields_are_reachable_from_the_adaptation_config():
+    """``nerf.preset_overrides``: any field of the NeRF preset, applied last to the NeRF
+    config each scene's fit uses; a bad item is refused when the config is overridden."""
+    from csa_core.adapt.config import cpu
+    from csa_core.adapt.pseudo_labels import nerf_config
+
+    items = ["nerf.preset_overrides=('sampler.render_band_color=false', 'loss.free_space=0.5')"]
+    config = apply_overrides(cpu(), items)
+    nerf = nerf_config(config.nerf)
+    assert nerf.sampler.render_band_color is False and nerf.loss.free_space == 0.5
+    assert nerf_config(cpu().nerf).sampler.render_band_color is True  # the preset's own
+    with pytest.raises(CSAInputError, match="sampler.bogus"):
+        apply_overrides(cpu(), ["nerf.preset_overrides=('sampler.bogus=1',)"])

@@ -78,7 +78,18 @@ class NerfBudget:
     semantic_hidden_layers: int | None = None
     semantic_detach_geometry: bool | None = None
     final_lr_fraction: float | None = None
+    # Any other field of the NeRF preset, as ``section.name=value`` items applied last
+    # (csa_core.overrides), e.g. ``--set "nerf.preset_overrides=('sampler.render_band_color=false',)"``.
+    preset_overrides: tuple[str, ...] = ()
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        # Checked here, when the config is made or overridden, not when a scene's fit starts.
+        if self.preset_overrides:
+            from csa_core.nerf.config import preset as nerf_preset
+            from csa_core.overrides import apply_overrides
+
+            apply_overrides(nerf_preset(self.preset), self.preset_overrides, flag="--set nerf.preset_overrides")
 
     def fit_steps(self, mode: str, views: int) -> int:
         """NeRF steps of the fit before the pseudo-labels in ``mode`` on a scene of ``views``

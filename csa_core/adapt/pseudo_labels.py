@@ -21,6 +21,7 @@ from csa_core.nerf.config import preset as nerf_preset
 from csa_core.nerf.fit import fit_semantic_nerf
 from csa_core.nerf.model import SemanticNerf
 from csa_core.nerf.render import render_frames
+from csa_core.overrides import apply_overrides
 from csa_core.progress import ProgressCallback, notify, sub_progress
 from csa_core.seg.predict import predict_labels
 
@@ -51,6 +52,8 @@ def nerf_config(budget: NerfBudget) -> NerfConfig:
     if budget.final_lr_fraction is not None:
         cfg.optim.final_lr_fraction = budget.final_lr_fraction
     cfg.seed = budget.seed
+    if budget.preset_overrides:
+        apply_overrides(cfg, budget.preset_overrides, flag="--set nerf.preset_overrides")
     return cfg
 
 
