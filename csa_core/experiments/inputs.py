@@ -146,12 +146,13 @@ class ExperimentInputs:
             return None
         recorded = dict(result.config)
         expected = json.loads(json.dumps(config.to_dict(), default=float))
+        defaults = json.loads(json.dumps(AdaptConfig().to_dict(), default=float))
         same = (
-            result.metrics
+            bool(result.metrics)
             and result.scenes == [s.name for s in self.scenes]
             and recorded.pop("method", None) == method
             and recorded.pop("pretrain_scenes", None) == [s.name for s in self.pretrain_scenes]
-            and {k: v for k, v in recorded.items() if k in expected} == expected
+            and _same_config(expected, recorded, defaults)
             and result.b.shape == b.shape
             and np.array_equal(result.b, b)
         )
@@ -199,6 +200,24 @@ class ExperimentInputs:
             "size": list(self.size) if self.size else None,
             "device": self.device,
         }
+
+
+def _same_config(expected: Any, recorded: Any, defaults: Any) -> bool:
+    """Whether a recorded config (JSON) is ``expected``: equal field by field, where a field
+    the record lacks (added to the code since) counts as equal if ``expected`` has it at its
+    default; fields only the record has (removed since) are ignored."""
+    if isinstance(expected, dict):
+        if not isinstance(recorded, dict):
+            return False
+        defaults = defaults if isinstance(defaults, dict) else {}
+        for key, value in expected.items():
+            if key in recorded:
+                if not _same_config(value, recorded[key], defaults.get(key)):
+                    return False
+            elif key not in defaults or defaults[key] != value:
+                return False
+        return True
+    return expected == recorded
 
 
 def load_inputs(

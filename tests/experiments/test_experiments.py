@@ -304,3 +304,35 @@ def test_multi_step_resume_reuses_finished_runs_and_redoes_changed_ones(workspac
     ran.clear()
     code, _, _ = csa(capsys, *argv)  # without --resume every run is done again
     assert code == 0 and len(ran) == 2
+
+
+def test_resume_accepts_a_record_from_before_a_field_was_added_only_at_its_default(tmp_path):
+    """A run recorded before a config field existed still matches if the field is at its
+    default now; at another value it does not; a changed field never matches."""
+    from types import SimpleNamespace
+
+    from csa_core.adapt.config import cpu
+    from csa_core.experiments.inputs import ExperimentInputs
+
+    config = cpu()
+    record_config = {**json.loads(json.dumps(config.to_dict())), "method": "finetune", "pretrain_scenes": []}
+    del record_config["nerf"]["preset_overrides"]  # "recorded before the field existed"
+    parts = ("multi-step", "finetune", "adabn-on", "seed0")
+    folder = tmp_path.joinpath("runs", *parts)
+    folder.mkdir(parents=True)
+    b = np.array([0.25, 0.5])
+    record = {"scenes": ["a", "b"], "R": [[0.3, None], [0.2, 0.6]], "b": b.tolist(), "metrics": {"acc": 0.4}, "config": record_config}
+    (folder / "results.json").write_text(json.dumps(record))
+    inputs = SimpleNamespace(
+        resume=True, out=tmp_path, scenes=[SimpleNamespace(name="a"), SimpleNamespace(name="b")], pretrain_scenes=[]
+    )
+    found = ExperimentInputs.finished_run(inputs, parts, config, "finetune", b)
+    assert found is not None and np.isnan(found.R[0, 1]) and found.metrics == {"acc": 0.4}
+    assert ExperimentInputs.finished_run(inputs, parts, config, "mapping", b) is None
+    assert ExperimentInputs.finished_run(inputs, parts, config, "finetune", b + 0.01) is None
+    changed = cpu()
+    changed.nerf.preset_overrides = ("loss.free_space=0",)
+    assert ExperimentInputs.finished_run(inputs, parts, changed, "finetune", b) is None
+    changed = cpu()
+    changed.seg.lr = 1e-3
+    assert ExperimentInputs.finished_run(inputs, parts, changed, "finetune", b) is None
