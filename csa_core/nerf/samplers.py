@@ -339,18 +339,13 @@ class OccupancyGrid(nn.Module):
         count = torch.zeros(n_rays, dtype=torch.long, device=dev)
         trans = torch.ones(n_rays, device=dev)
         kept_ri, kept_t = [], []
-        occupied = self.occupied.view(-1)
         for s0 in range(0, n_steps, chunk_steps):
             active = (count < limit) & (t_near + s0 * dt < t_far) & (trans > early_stop_eps)
             rays = torch.nonzero(active).squeeze(-1)
             if rays.numel() == 0:
                 break
-            k = torch.arange(s0, min(s0 + chunk_steps, n_steps), device=dev, dtype=torch.float32)
-            t = t_near[rays, None] + (k[None, :] + offset[rays, None]) * dt[rays, None]  # R' x K
-            pts = origins[rays, None, :] + dirs[rays, None, :] * t[..., None]
-            idx = self._cell_index(box.to_unit(pts))
-            keep = (t < t_far[rays, None]) & (idx >= 0)
-            keep &= occupied[idx.clamp_min(0)]
+            s1 = min(s0 + chunk_steps, n_steps)
+            t, pts, keep = self._march_chunk(box, origins, dirs, t_near, dt, offset, t_far, rays, s0, s1)
             if density_fn is not None and bool(keep.any()):
                 sigma_dt = torch.zeros_like(t)
                 sigma_dt[keep] = density_fn(pts[keep]) * step
@@ -375,6 +370,32 @@ class OccupancyGrid(nn.Module):
         ri, t = ri[order], t[order]
         half = 0.5 * dt[ri]
         return RaySamples(ri, t - half, t + half, n_rays)
+
+    def _march_chunk(
+        self,
+        box: SceneBox,
+        origins: Tensor,
+        dirs: Tensor,
+        t_first: Tensor,
+        dt: Tensor,
+        offset: Tensor | float,
+        t_far: Tensor,
+        rays: Tensor,
+        s0: int,
+        s1: int,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Steps ``s0..s1-1`` of the marches of ``rays`` (indices into the per-ray tensors):
+        ``t`` (R' x K) at ``t_first + (k + offset) * dt``, their points, and whether each lies
+        before ``t_far`` in an occupied cell. ``offset``: per ray (R,) or one number. The
+        one stepping code of :meth:`sampling`, :meth:`first_hit` and ``GridSurfaceEstimate``."""
+        k = torch.arange(s0, s1, device=origins.device, dtype=torch.float32)
+        off = offset[rays, None] if isinstance(offset, Tensor) else offset
+        t = t_first[rays, None] + (k[None, :] + off) * dt[rays, None]  # R' x K
+        pts = origins[rays, None, :] + dirs[rays, None, :] * t[..., None]
+        idx = self._cell_index(box.to_unit(pts))
+        occ = (t < t_far[rays, None]) & (idx >= 0)
+        occ &= self.occupied.view(-1)[idx.clamp_min(0)]
+        return t, pts, occ
 
     def cell_size(self, box: SceneBox) -> float:
         """Edge of one cell in metres."""
@@ -404,18 +425,12 @@ class OccupancyGrid(nn.Module):
         dt = step / dirs.norm(dim=-1)
         n_steps = int(torch.ceil(((t_far - t_near).clamp_min(0) / dt).max()).item())
         pending = t_far > t_near
-        occupied = self.occupied.view(-1)
         for s0 in range(0, n_steps, chunk_steps):
             rays = torch.nonzero(pending & (t_near + s0 * dt < t_far)).squeeze(-1)
             if rays.numel() == 0:
                 break
-            k = torch.arange(s0, min(s0 + chunk_steps, n_steps), device=dev, dtype=torch.float32)
-            t = t_near[rays, None] + (k[None, :] + 0.5) * dt[rays, None]  # R' x K
-            idx = self._cell_index(
-                box.to_unit(origins[rays, None, :] + dirs[rays, None, :] * t[..., None])
-            )
-            occ = (t < t_far[rays, None]) & (idx >= 0)
-            occ &= occupied[idx.clamp_min(0)]
+            s1 = min(s0 + chunk_steps, n_steps)
+            t, _, occ = self._march_chunk(box, origins, dirs, t_near, dt, 0.5, t_far, rays, s0, s1)
             found = occ.any(dim=1)
             first = torch.argmax(occ.to(torch.uint8), dim=1)  # the first True where any
             got = rays[found]
@@ -474,20 +489,13 @@ class GridSurfaceEstimate:
         tau = torch.zeros_like(start)
         found = torch.zeros_like(start)
         active = torch.ones_like(start, dtype=torch.bool)
-        occupied = self.grid.occupied.view(-1)
         n_steps = int(torch.ceil(((t_far - start).clamp_min(0) / dt).max()).item())
         for s0 in range(0, n_steps, self.chunk_steps):
             r = torch.nonzero(active & (start + s0 * dt < t_far)).squeeze(-1)
             if r.numel() == 0:
                 break
-            k = torch.arange(
-                s0, min(s0 + self.chunk_steps, n_steps), device=d.device, dtype=torch.float32
-            )
-            t = start[r, None] + (k[None, :] + 0.5) * dt[r, None]  # R' x K step middles
-            pts = o[r, None, :] + d[r, None, :] * t[..., None]
-            idx = self.grid._cell_index(self.box.to_unit(pts))
-            occ = (t < t_far[r, None]) & (idx >= 0)
-            occ &= occupied[idx.clamp_min(0)]
+            s1 = min(s0 + self.chunk_steps, n_steps)  # steps' middles:
+            t, pts, occ = self.grid._march_chunk(self.box, o, d, start, dt, 0.5, t_far, r, s0, s1)
             sigma_dt = torch.zeros_like(t)
             if bool(occ.any()):
                 sigma_dt[occ] = density_fn(pts[occ]) * step
