@@ -12,7 +12,6 @@ import numpy as np
 from torch import nn
 
 from csa_core.adapt.config import NerfBudget
-from csa_core.adapt.nerf_training import NerfLabelTrainer
 from csa_core.data.camera import Intrinsics
 from csa_core.data.scene import NYU40_FOLDER, Frame, Scene
 from csa_core.eval.miou import ConfusionMatrix
@@ -51,6 +50,10 @@ def nerf_config(budget: NerfBudget) -> NerfConfig:
         cfg.field.semantic_detach_geometry = budget.semantic_detach_geometry
     if budget.final_lr_fraction is not None:
         cfg.optim.final_lr_fraction = budget.final_lr_fraction
+    if budget.semantic_steps > 0:
+        # The fit's own semantic steps (fit_semantic_nerf), at the budget's ray batch.
+        cfg.optim.semantic_steps = budget.semantic_steps
+        cfg.optim.semantic_rays_per_step = cfg.optim.rays_per_step
     cfg.seed = budget.seed
     if budget.preset_overrides:
         apply_overrides(cfg, budget.preset_overrides, flag="--set nerf.preset_overrides")
@@ -171,13 +174,7 @@ def make_pseudo_labels(
         progress=False,
         on_progress=sub_progress(on_progress, 0.0, 0.8),
     )
-    if budget.semantic_steps > 0:
-        trainer = NerfLabelTrainer(
-            nerf, scene, rays_per_step=budget.rays_per_step, seed=budget.seed
-        )
-        trainer.set_labels(predictions)
-        trainer.train_semantics(budget.semantic_steps)
-    notify(on_progress, f"NeRF semantic steps ({budget.semantic_steps})", 0.9)
+    notify(on_progress, f"NeRF semantic steps ({nerf.config.optim.semantic_steps})", 0.9)
     t2 = time.perf_counter()
     rendered, labels = render_pairs(nerf, scene)
     t3 = time.perf_counter()

@@ -3,16 +3,20 @@
 Per scene and seed, on the training views: the pre-trained network's predictions, Mapping's
 labels (the predictions fused in a voxel map and read back) and the NeRF's rendered labels
 (a Semantic-NeRF fitted to the same predictions), each scored against the ground truth.
-Nothing is fine-tuned; the NeRF fit is the only seeded step, so the network and Mapping
-columns have no spread over seeds by construction.
+Nothing is fine-tuned. Where the config re-estimates BatchNorm statistics before labelling
+(``AdaptConfig.adabn_before_labels``, the ``cpu`` preset), the network predicts each scene
+with its statistics re-estimated on that scene's camera images, as the continual step's
+labels are made (``csa_core.adapt.finetune.begin_step``). The NeRF fit is the only seeded
+step, so the network and Mapping columns have little or no spread over seeds.
 """
 
 from __future__ import annotations
 
+import copy
 import time
 
 from csa_core.adapt.baselines.mapping import mapping_pseudo_labels
-from csa_core.adapt.finetune import step_nerf_budget
+from csa_core.adapt.finetune import apply_adabn, step_nerf_budget
 from csa_core.adapt.pseudo_labels import label_miou, make_pseudo_labels
 from csa_core.experiments.inputs import ExperimentInputs
 from csa_core.experiments.report import ExperimentReport, markdown_table, mean_std, pct
@@ -34,7 +38,17 @@ def run(inputs: ExperimentInputs) -> ExperimentReport:
             t0 = time.perf_counter()
             # The NeRF of the fine-tuning modes: the whole fit before the pseudo-labels.
             budget = step_nerf_budget(config, scene, mode="gi_nl")
-            _, pseudo = make_pseudo_labels(model, scene, budget, config.seg.device)
+            net = model
+            if config.adabn_before_labels:
+                net = copy.deepcopy(model)
+                apply_adabn(
+                    net,
+                    [f.color for f in scene.train_frames],
+                    None,
+                    config.seg.seed,
+                    config.seg.device,
+                )
+            _, pseudo = make_pseudo_labels(net, scene, budget, config.seg.device)
             mapped = mapping_pseudo_labels(scene, pseudo.predictions)
             values = {
                 "network": label_miou(pseudo.predictions, scene),

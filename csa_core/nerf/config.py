@@ -150,6 +150,12 @@ class OptimConfig:
     semantic_steps: int = 0
     semantic_rays_per_step: int = 4096
     semantic_lr_fraction: float = 1.0
+    # Ours (True = paper): whether the fit's steps train the semantic head too. False leaves
+    # the head at its initialisation until the semantic steps above, which then learn the
+    # labels through the finished geometry's rendering weights instead of the forming ones
+    # (and the fit's steps skip the semantic MLP). Needs ``semantic_steps > 0`` when labels
+    # are fitted.
+    semantics_in_fit: bool = True
 
 
 @dataclass

@@ -95,6 +95,11 @@ def fit_semantic_nerf(
     frames = list(scene.train_frames if frames is None else frames)
     check_fit_inputs(scene, label_folder, frames)
     n_steps = cfg.optim.steps if steps is None else int(steps)
+    if label_folder is not None and not cfg.optim.semantics_in_fit and cfg.optim.semantic_steps <= 0:
+        raise ValueError(
+            "optim.semantics_in_fit=false leaves the semantic head untrained unless "
+            "optim.semantic_steps > 0"
+        )
     has_depth = any(f.depth is not None and bool((f.depth > 0).any()) for f in frames)
     if cfg.sampler.train == "depth" and not has_depth:
         log.warning(
@@ -123,6 +128,7 @@ def fit_semantic_nerf(
         schedule_steps=n_steps,
         free_space_warmup=cfg.loss.free_space_warmup * n_steps,
         seed=cfg.seed,
+        semantics=cfg.optim.semantics_in_fit,
     )
 
     bar = None

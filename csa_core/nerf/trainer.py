@@ -54,11 +54,13 @@ class NerfTrainer:
         rays_per_step: int | None = None,
         free_space_warmup: float = 0.0,
         seed: int = 0,
+        semantics: bool = True,
     ):
         o = nerf.config.optim
         self.nerf, self.rays = nerf, rays
         self.rays_per_step = rays_per_step or o.rays_per_step
         self.free_space_warmup = free_space_warmup
+        self.semantics = semantics
         self.sampler = nerf.train_sampler(has_depth=rays.has_depth)
         self.optimizer = make_adam(nerf.parameter_groups(), lr or o.lr, nerf)
         fraction = o.final_lr_fraction if final_lr_fraction is None else final_lr_fraction
@@ -82,7 +84,11 @@ class NerfTrainer:
             origins, dirs, self.sampler, depth=target["depth"], stratified=True, generator=gen
         )
         out = nerf.render_samples(
-            origins, dirs, samples, semantics="labels" in target, appearance=target["frame"]
+            origins,
+            dirs,
+            samples,
+            semantics=self.semantics and "labels" in target,
+            appearance=target["frame"],
         )
         terms = nerf.losses(out, target, samples, self.free_space_scale())
         self.optimizer.zero_grad(set_to_none=True)

@@ -140,3 +140,40 @@ def test_label_trainer_without_labels_trains_colour_and_depth(nerf, scene):
     assert "semantic" not in terms and np.isfinite(terms["loss"])
     with pytest.raises(ValueError, match="set_labels"):
         trainer.train_semantics(1)
+
+
+def test_a_fit_without_semantics_leaves_the_head_to_the_semantic_steps(scene):
+    """``optim.semantics_in_fit=False``: the fit's steps ignore the labels (its geometry and
+    colour are bit for bit those of a fit without labels) and the semantic head learns only
+    in the semantic steps after the fit."""
+    cfg = tiny_config(steps=15)
+    cfg.optim.semantics_in_fit = False
+    with pytest.raises(ValueError, match="semantic_steps"):
+        fit_semantic_nerf(scene, "label-nyu40", cfg, progress=False)
+    cfg.optim.semantic_steps, cfg.optim.semantic_rays_per_step = 30, 256
+    with_labels = fit_semantic_nerf(scene, "label-nyu40", cfg, progress=False)[0]
+    without = fit_semantic_nerf(scene, None, cfg, progress=False)[0]
+    other = dict(without.named_parameters())
+    semantic = set()
+    for name, p in with_labels.named_parameters():
+        if name.startswith("field.semantic_"):
+            semantic.add(name)
+        else:
+            assert torch.equal(p, other[name]), name
+    assert semantic and any(
+        not torch.equal(p, other[n]) for n, p in with_labels.named_parameters() if n in semantic
+    )
+    bank = RayBank(scene.train_frames, scene.intrinsics, label_folder="label-nyu40")
+    terms = NerfTrainer(without, bank, schedule_steps=2, semantics=False).train(2)
+    assert "semantic" not in terms and "color" in terms
+
+
+def test_the_budget_semantic_steps_run_inside_the_fit():
+    """``NerfBudget.semantic_steps`` becomes the fit's ``optim.semantic_steps`` at the budget's
+    ray batch: one place runs semantic steps (``fit_semantic_nerf``)."""
+    from csa_core.adapt.config import NerfBudget
+    from csa_core.adapt.pseudo_labels import nerf_config
+
+    cfg = nerf_config(NerfBudget(semantic_steps=25, rays_per_step=512))
+    assert cfg.optim.semantic_steps == 25 and cfg.optim.semantic_rays_per_step == 512
+    assert nerf_config(NerfBudget()).optim.semantic_steps == 0
