@@ -48,7 +48,8 @@ class NerfBudget:
     epochs when set (the whole fit in the GI+NL / NI+NL modes); joint mode's pre-fit is
     ``joint_prefit_epochs`` epochs when set, else the same as the others'. An epoch is one
     ray batch per training view, as in the official code (one ``rays_per_step`` batch drawn
-    from each view in turn; here drawn from all views' pixels): :meth:`fit_steps`.
+    from each view in turn; ``paper`` does the same, ``cpu`` draws from all views' pixels,
+    ``OptimConfig.ray_batches``): :meth:`fit_steps`.
 
     ``semantic_steps``: then steps on the semantic head alone (geometry frozen; cheap, and
     the fit's semantics lag its colours). The joint per-round schedule (``JointBudget``)
@@ -247,7 +248,8 @@ def paper() -> AdaptConfig:
     resolution 16, 256 uniform + 256 importance samples, 4096 rays per step, Adam 1e-2,
     betas (0.9, 0.99), eps 1e-15) with the official finest resolution, at a fixed rate,
     without our semantic feature table, and with the official semantic MLP (one hidden
-    layer). Fit 60 epochs before the pseudo-labels (GI+NL, NI+NL); joint: 10 epochs, then
+    layer), each step's 4096 rays drawn from one training view. Fit 60 epochs before
+    the pseudo-labels (GI+NL, NI+NL); joint: 10 epochs, then
     50 network epochs alternating per batch with full NeRF steps (equal NeRF budgets).
     Network: Adam 1e-5, batch 4, 50 epochs, constant rate. Replay: 100 pairs, 10% of the
     pre-training data, batches of 2 + 2. No collapse guard, AdaBN only after training
@@ -265,6 +267,8 @@ def paper() -> AdaptConfig:
             semantic_hidden_layers=1,
             semantic_detach_geometry=False,
             final_lr_fraction=1.0,
+            # Each step's rays from one training view, as the official code draws them.
+            preset_overrides=("optim.ray_batches=per_view",),
         ),
         seg=SegBudget(
             lr=PAPER_SEG_LR,

@@ -156,6 +156,10 @@ class OptimConfig:
     # (and the fit's steps skip the semantic MLP). Needs ``semantic_steps > 0`` when labels
     # are fitted.
     semantics_in_fit: bool = True
+    # Where a step's rays come from: "all" (ours) draws pixels from every training view at
+    # once; "per_view" draws the whole batch from one view, the views in a fresh random
+    # order each epoch (the official code's batches; the ``paper`` adaptation preset).
+    ray_batches: Literal["all", "per_view"] = "all"
 
 
 @dataclass

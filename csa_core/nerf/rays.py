@@ -97,9 +97,17 @@ class RayBank:
             )
         self.labels = torch.as_tensor(stack.reshape(-1), device=self.device)
 
-    def random_ids(self, n: int, generator: torch.Generator | None = None) -> Tensor:
-        """``n`` pixel ids drawn uniformly (with replacement) from all frames."""
-        return torch.randint(0, self.count, (n,), device=self.device, generator=generator)
+    def random_ids(
+        self, n: int, generator: torch.Generator | None = None, frame: int | None = None
+    ) -> Tensor:
+        """``n`` pixel ids drawn uniformly (with replacement) from all frames, or from frame
+        number ``frame`` alone (the official code's ray batches: one image per step)."""
+        if frame is None:
+            return torch.randint(0, self.count, (n,), device=self.device, generator=generator)
+        if not 0 <= frame < len(self.frames):
+            raise IndexError(f"frame {frame} of a bank of {len(self.frames)} frames")
+        pix = torch.randint(0, self.hw, (n,), device=self.device, generator=generator)
+        return pix + frame * self.hw
 
     def rays(self, ids: Tensor) -> tuple[Tensor, Tensor]:
         """World origins and unit-z directions (N, 3) of pixels ``ids``."""

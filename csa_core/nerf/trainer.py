@@ -67,6 +67,10 @@ class NerfTrainer:
         decay = math.exp(math.log(fraction) / max(1, schedule_steps))
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, decay)
         self.generator = torch.Generator(device=rays.device).manual_seed(seed)
+        if o.ray_batches not in ("all", "per_view"):
+            raise ValueError(f"optim.ray_batches must be 'all' or 'per_view', got {o.ray_batches!r}")
+        self.per_view = o.ray_batches == "per_view"
+        self._view_order: list[int] = []
         self.steps_done = 0
         self.samples_seen = 0
 
@@ -74,10 +78,21 @@ class NerfTrainer:
         warm = self.free_space_warmup
         return min(1.0, max(0.0, (self.steps_done - warm) / max(warm, 1.0)))
 
+    def draw(self) -> Tensor:
+        """The next step's pixel ids: from every view, or (``optim.ray_batches="per_view"``)
+        from the next view of this epoch's random order."""
+        if not self.per_view:
+            return self.rays.random_ids(self.rays_per_step, self.generator)
+        if not self._view_order:
+            n = len(self.rays.frames)
+            order = torch.randperm(n, generator=self.generator, device=self.generator.device)
+            self._view_order = order.tolist()[::-1]
+        return self.rays.random_ids(self.rays_per_step, self.generator, self._view_order.pop())
+
     def step(self) -> dict[str, Tensor]:
         """One Adam step on a fresh ray batch; returns the loss terms (tensors)."""
         nerf, gen = self.nerf, self.generator
-        ids = self.rays.random_ids(self.rays_per_step, gen)
+        ids = self.draw()
         origins, dirs, target = self.rays.batch(ids)
         self.sampler.update_every_n_steps(self.steps_done, nerf.density_fn, gen)
         samples = nerf.sample(

@@ -66,6 +66,8 @@ def test_the_nerf_is_the_papers():
     o = cfg.optim
     assert (o.rays_per_step, o.lr, o.betas, o.eps) == (4096, 1e-2, (0.9, 0.99), 1e-15)
     assert o.final_lr_fraction == 1.0  # a fixed rate
+    assert o.ray_batches == "per_view"  # each step's rays from one image, as the official code
+    assert o.semantics_in_fit and o.semantic_steps == 0
     f = cfg.field
     assert (f.hidden_dim, f.density_hidden_layers, f.geo_features) == (64, 1, 15)
     assert (f.color_hidden_layers, f.semantic_hidden_layers, f.sh_degree) == (2, 1, 4)
@@ -90,6 +92,8 @@ def test_the_nerf_is_the_papers():
     groups = trainer.optimizer.param_groups
     assert {(g["lr"], g["betas"], g["eps"]) for g in groups} == {(1e-2, (0.9, 0.99), 1e-15)}
     assert trainer.scheduler.gamma == 1.0
+    frames = {int(i) // trainer.rays.hw for i in trainer.draw()}
+    assert len(frames) == 1  # one view per step
 
 
 def test_the_network_and_its_training_are_the_papers(pretrained):

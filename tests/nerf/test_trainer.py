@@ -177,3 +177,26 @@ def test_the_budget_semantic_steps_run_inside_the_fit():
     cfg = nerf_config(NerfBudget(semantic_steps=25, rays_per_step=512))
     assert cfg.optim.semantic_steps == 25 and cfg.optim.semantic_rays_per_step == 512
     assert nerf_config(NerfBudget()).optim.semantic_steps == 0
+
+
+def test_per_view_ray_batches_take_each_view_once_per_epoch(scene):
+    """``optim.ray_batches="per_view"`` (the official code's batches): every step's rays come
+    from one view, and an epoch (one step per view) visits every view once."""
+    cfg = tiny_config(steps=0)
+    cfg.optim.ray_batches = "per_view"
+    nerf = fit_semantic_nerf(scene, None, cfg, progress=False)[0]
+    bank = RayBank(scene.train_frames, scene.intrinsics)
+    trainer = NerfTrainer(nerf, bank, schedule_steps=10, rays_per_step=64, seed=1)
+    views = len(scene.train_frames)
+    for _epoch in range(2):
+        seen = []
+        for _ in range(views):
+            frames = (trainer.draw() // bank.hw).unique().tolist()
+            assert len(frames) == 1
+            seen.append(frames[0])
+        assert sorted(seen) == list(range(views))
+    cfg.optim.ray_batches = "all"
+    spread = NerfTrainer(nerf, bank, schedule_steps=10, rays_per_step=256).draw() // bank.hw
+    assert len(spread.unique()) > 1
+    with pytest.raises(IndexError, match="frame"):
+        bank.random_ids(4, frame=views)
