@@ -273,8 +273,10 @@ def nerf_row(
 ) -> dict[str, Any]:
     """Fit preset ``name`` and score its renders; the model goes into ``fitted["nerf"]``."""
     train, val = scene.train_frames, scene.val_frames
-    cfg = preset(name)
+    base, *own = name.split("+")
+    cfg = preset(base)
     apply_overrides(cfg, args.set)
+    apply_overrides(cfg, own, flag=f"--presets {name}")
     nerf, stats = fit_semantic_nerf(
         scene,
         INPUT if has_labels else None,
@@ -459,7 +461,12 @@ def main() -> None:
     labels.add_argument("--noise", action="store_true", help="corrupted ground truth (default)")
     labels.add_argument("--labels", default=None, help="a label folder of the scene")
     labels.add_argument("--predictions", default=None, help="a segmentation network checkpoint")
-    p.add_argument("--presets", default="fast", help="comma-separated NeRF presets, or none")
+    p.add_argument(
+        "--presets",
+        default="fast",
+        help="comma-separated NeRF presets, or none; PRESET+KEY=VALUE+... adds that row's own "
+        "overrides after --set (e.g. fast,fast+optim.semantic_steps=300)",
+    )
     p.add_argument("--steps", type=int, default=None, help="override the presets' step counts")
     p.add_argument("--set", action="append", default=[], help="NeRF config override, a.b=value")
     p.add_argument(
@@ -482,6 +489,12 @@ def main() -> None:
     from csa_core.device import resolve_device
 
     torch.set_num_threads(args.threads)
+    for name in [n for n in args.presets.split(",") if n not in ("", "none")]:
+        base, *own = name.split("+")  # a bad preset or override fails before any work
+        try:
+            apply_overrides(apply_overrides(preset(base), args.set), own, flag=f"--presets {name}")
+        except (CSAInputError, ValueError) as err:
+            raise SystemExit(f"fusion_bench: {err}") from None
     try:
         args.size = parse_size(args.size)
         args.device_torch = resolve_device(None if args.device == "auto" else args.device)
