@@ -245,3 +245,14 @@ def test_nerf_preset_fields_are_reachable_from_the_adaptation_config():
     assert nerf_config(cpu().nerf).sampler.render_band_color is True  # the preset's own
     with pytest.raises(CSAInputError, match="sampler.bogus"):
         apply_overrides(cpu(), ["nerf.preset_overrides=('sampler.bogus=1',)"])
+
+
+def test_a_semantic_head_trained_after_the_fit_needs_semantic_steps():
+    """``nerf.semantics_in_fit=false`` is refused when the config is made, not at a scene's
+    fit, unless the budget also gives semantic steps."""
+    with pytest.raises(CSAInputError, match="semantic_steps > 0"):
+        apply_overrides(adapt_preset("cpu"), ["nerf.semantics_in_fit=false"])
+    config = apply_overrides(
+        adapt_preset("cpu"), ["nerf.semantic_steps=400", "nerf.semantics_in_fit=false"]
+    )
+    assert (config.nerf.semantic_steps, config.nerf.semantics_in_fit) == (400, False)

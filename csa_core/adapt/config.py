@@ -60,8 +60,10 @@ class NerfBudget:
     The remaining fields override the preset's numbers when set: ray batch, hash table size,
     levels and finest resolution, the semantic feature table's levels (``0``: the semantic
     MLP reads the geometry features only), the semantic MLP's hidden layers, whether that MLP
-    reads the geometry features detached (``False``: the official head), and the final
-    learning rate as a fraction of the first (``1.0``: a fixed rate).
+    reads the geometry features detached (``False``: the official head), whether the fit's
+    steps train the semantic head (``False``: only the semantic steps after the fit do;
+    ``OptimConfig.semantics_in_fit``), and the final learning rate as a fraction of the
+    first (``1.0``: a fixed rate).
     """
 
     preset: str = "fast"
@@ -78,6 +80,7 @@ class NerfBudget:
     semantic_grid_levels: int | None = None
     semantic_hidden_layers: int | None = None
     semantic_detach_geometry: bool | None = None
+    semantics_in_fit: bool | None = None
     final_lr_fraction: float | None = None
     # Any other field of the NeRF preset, as ``section.name=value`` items applied last
     # (csa_core.overrides), e.g. ``--set "nerf.preset_overrides=('sampler.render_band_color=false',)"``.
@@ -86,6 +89,11 @@ class NerfBudget:
 
     def __post_init__(self) -> None:
         # Checked here, when the config is made or overridden, not when a scene's fit starts.
+        if self.semantics_in_fit is False and self.semantic_steps <= 0:
+            raise ValueError(
+                "NerfBudget: semantics_in_fit=False leaves the semantic head untrained unless "
+                "semantic_steps > 0"
+            )
         if self.preset_overrides:
             from csa_core.nerf.config import preset as nerf_preset
             from csa_core.overrides import apply_overrides

@@ -48,6 +48,8 @@ def nerf_config(budget: NerfBudget) -> NerfConfig:
         cfg.field.semantic_hidden_layers = budget.semantic_hidden_layers
     if budget.semantic_detach_geometry is not None:
         cfg.field.semantic_detach_geometry = budget.semantic_detach_geometry
+    if budget.semantics_in_fit is not None:
+        cfg.optim.semantics_in_fit = budget.semantics_in_fit
     if budget.final_lr_fraction is not None:
         cfg.optim.final_lr_fraction = budget.final_lr_fraction
     if budget.semantic_steps > 0:

@@ -174,8 +174,10 @@ def test_the_budget_semantic_steps_run_inside_the_fit():
     from csa_core.adapt.config import NerfBudget
     from csa_core.adapt.pseudo_labels import nerf_config
 
-    cfg = nerf_config(NerfBudget(semantic_steps=25, rays_per_step=512))
+    cfg = nerf_config(NerfBudget(semantic_steps=25, rays_per_step=512, semantics_in_fit=False))
     assert cfg.optim.semantic_steps == 25 and cfg.optim.semantic_rays_per_step == 512
+    assert cfg.optim.semantics_in_fit is False
+    assert nerf_config(NerfBudget()).optim.semantics_in_fit is True  # the preset's own
     assert nerf_config(NerfBudget()).optim.semantic_steps == 0
 
 
