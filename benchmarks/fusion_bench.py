@@ -72,6 +72,7 @@ from csa_core.data.synth import NOISY_FOLDER, degrade_scene, family_names, parse
 from csa_core.errors import CSAInputError
 from csa_core.eval import ConfusionMatrix
 from csa_core.nerf import (
+    NerfConfig,
     fit_semantic_nerf,
     preset,
     render_image,
@@ -264,6 +265,14 @@ def map_rows(scene: Scene, has_labels: bool, args: argparse.Namespace) -> list[d
     return rows
 
 
+def preset_config(name: str, sets: list[str]) -> NerfConfig:
+    """The NeRF config of a ``--presets`` entry ``PRESET[+KEY=VALUE...]``: the preset, then
+    ``--set``, then the entry's own overrides."""
+    base, *own = name.split("+")
+    cfg = apply_overrides(preset(base), sets)
+    return apply_overrides(cfg, own, flag=f"--presets {name}")
+
+
 def nerf_row(
     scene: Scene,
     has_labels: bool,
@@ -273,10 +282,7 @@ def nerf_row(
 ) -> dict[str, Any]:
     """Fit preset ``name`` and score its renders; the model goes into ``fitted["nerf"]``."""
     train, val = scene.train_frames, scene.val_frames
-    base, *own = name.split("+")
-    cfg = preset(base)
-    apply_overrides(cfg, args.set)
-    apply_overrides(cfg, own, flag=f"--presets {name}")
+    cfg = preset_config(name, args.set)
     nerf, stats = fit_semantic_nerf(
         scene,
         INPUT if has_labels else None,
@@ -490,9 +496,8 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     for name in [n for n in args.presets.split(",") if n not in ("", "none")]:
-        base, *own = name.split("+")  # a bad preset or override fails before any work
-        try:
-            apply_overrides(apply_overrides(preset(base), args.set), own, flag=f"--presets {name}")
+        try:  # a bad preset or override fails before any work
+            preset_config(name, args.set)
         except (CSAInputError, ValueError) as err:
             raise SystemExit(f"fusion_bench: {err}") from None
     try:
