@@ -36,7 +36,11 @@ the same fit again with another render option (fit seconds and size are the fit'
 ``holes-marched`` marches the pixels in depth holes along the whole ray (the render before
 ``SamplerConfig.render_hole_estimate``), ``unseen-unknown`` labels surfaces that no training
 camera saw 0, unknown, as the map does (``NerfConfig.render_unseen_unknown``; its printed
-line also gives ``val_unknown``, the share of held-out pixels left unknown). Columns: mIoU on
+line also gives ``val_unknown``, the share of held-out pixels left unknown). ``novel-marched``
+and ``novel-estimated`` render the held-out views from their poses alone (novel views: colour
+and labels, no depth), every ray marched or rendered around its estimated surface
+(``SamplerConfig.render_novel_estimate``); they give val mIoU, val PSNR and seconds per
+held-out view. Columns: mIoU on
 the training views and on the held-out views (the scene's last 20%), fit seconds, render seconds per view (train
 and held-out views together), stored bytes (map: keys and scores as held in memory; NeRF: its
 checkpoint file) and peak memory: the process's peak resident set size while that fuser fit
@@ -75,6 +79,7 @@ from csa_core.nerf import (
     NerfConfig,
     fit_semantic_nerf,
     preset,
+    render_frames,
     render_image,
     render_views,
     save_checkpoint,
@@ -320,9 +325,15 @@ def nerf_row(
     return row
 
 
-RENDERS = {  # --renders: name -> (row suffix, render option of the fitted model)
-    "holes-marched": ("holes marched", ("sampler", "render_hole_estimate", False)),
-    "unseen-unknown": ("unseen=unknown", (None, "render_unseen_unknown", True)),
+RENDERS = {  # --renders: name -> (row suffix, render option of the fitted model, views' depth)
+    "holes-marched": ("holes marched", ("sampler", "render_hole_estimate", False), True),
+    "unseen-unknown": ("unseen=unknown", (None, "render_unseen_unknown", True), True),
+    "novel-marched": ("held-out views without depth, marched", None, False),
+    "novel-estimated": (
+        "held-out views without depth, surface estimated",
+        ("sampler", "render_novel_estimate", True),
+        False,
+    ),
 }
 
 
@@ -330,26 +341,46 @@ def render_row(
     scene: Scene, fitted: dict[str, Any], fit: dict[str, Any], render: str
 ) -> dict[str, Any]:
     """The labels of an already fitted NeRF (``fitted["nerf"]``, row ``fit``) rendered again
-    with the ``render`` option of ``RENDERS`` switched."""
+    with the ``render`` option of ``RENDERS`` switched. The ``novel-*`` rows render the held-out
+    views as novel views: from their poses alone, colour and labels, as ``csa nerf render
+    --views novel`` does; they score val mIoU and PSNR only."""
     nerf = fitted["nerf"]
-    suffix, (section, key, value) = RENDERS[render]
+    suffix, option, with_depth = RENDERS[render]
+    section, key, value = option or (None, None, None)
     target = nerf.config if section is None else getattr(nerf.config, section)
-    before = getattr(target, key)
-    setattr(target, key, value)
+    before = getattr(target, key) if key else None
+    if key:
+        setattr(target, key, value)
     try:
         t0 = time.perf_counter()
-        rendered = {}
-        for views in ("train", "val"):
-            for v in render_views(nerf, scene, views, semantics=True, color=False):
-                rendered[v.name] = v.labels
-        seconds = (time.perf_counter() - t0) / len(scene.frames)
+        rendered, colors = {}, {}
+        if with_depth:
+            for views in ("train", "val"):
+                for v in render_views(nerf, scene, views, semantics=True, color=False):
+                    rendered[v.name] = v.labels
+            n_views = len(scene.frames)
+        else:
+            val = scene.val_frames
+            poses = [(f.name, f.pose) for f in val]
+            for v in render_frames(nerf, poses, scene.intrinsics, semantics=True, color=True):
+                rendered[v.name], colors[v.name] = v.labels, v.color
+            n_views = len(val)
+        seconds = (time.perf_counter() - t0) / n_views
     finally:
-        setattr(target, key, before)
+        if key:
+            setattr(target, key, before)
     row = {"fuser": f"{fit['fuser']}, {suffix}", "fit_s": fit["fit_s"]}
     row["render_s_per_view"] = seconds
     row["stored_mb"] = fit["stored_mb"]
-    row["miou_train"] = miou(rendered, scene.train_frames)
+    if with_depth:
+        row["miou_train"] = miou(rendered, scene.train_frames)
     row["miou_val"] = miou(rendered, scene.val_frames)
+    if colors:
+        mse = [
+            float(np.mean((colors[f.name].astype(np.float64) - f.color) ** 2)) / 255.0**2
+            for f in scene.val_frames
+        ]
+        row["val_psnr"] = psnr(float(np.mean(mse)))
     if render == "unseen-unknown":
         row["val_unknown"] = float(
             np.mean([(rendered[f.name] == 0).mean() for f in scene.val_frames])

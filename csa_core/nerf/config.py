@@ -78,7 +78,8 @@ class SamplerConfig:
     ``render_estimate_step`` cells to opacity 1/2: ``samplers.GridSurfaceEstimate``) and render
     in the band around it, ``render_estimate_band_scale`` times as wide; rays it finds no
     surface for, all of them when it is off, and views without depth use the ``render``
-    sampler. Rendering only: training samples never change.
+    sampler, unless ``render_novel_estimate`` treats each of their rays as a hole too.
+    Rendering only: training samples never change.
     """
 
     train: Literal["reference", "depth", "occupancy"] = "reference"
@@ -90,6 +91,10 @@ class SamplerConfig:
     render_hole_estimate: bool = True
     render_estimate_step: float = 0.5  # hole estimate: march step, in occupancy cells
     render_estimate_band_scale: float = 2.0  # hole estimate: band width against a measurement's
+    # Ours, off by default: a view without any depth (novel views, replay) renders every ray
+    # as a hole, in the band around its estimated surface (needs ``render_depth_guided``);
+    # False = every ray of such a view marches the ``render`` sampler.
+    render_novel_estimate: bool = False
     # Ours: colour (and depth) of a view with depth from the band too, normalised by the band's
     # opacity (the colour of the surface the band holds); rays whose band opacity is below
     # ``render_band_min_opacity`` (a partly fitted field, a floater in front) march the whole

@@ -301,11 +301,19 @@ class SemanticNerf(nn.Module):
         normalised by its opacity, where that opacity is high enough
         (:meth:`_render_band_color`)."""
         s = self.config.sampler
+        if sampler is None and depth is None and s.render_depth_guided and s.render_novel_estimate:
+            # A view without depth: every ray is a hole, rendered around its estimated surface.
+            depth = torch.zeros(origins.shape[0], device=origins.device)
         if sampler is None and color and depth is not None and s.render_depth_guided:
             if s.render_band_color and self.appearance is None:
                 return self._render_band_color(origins, dirs, depth, semantics, chunk)
             out = self.render_rays(
-                origins, dirs, semantics=False, chunk=chunk, appearance=appearance
+                origins,
+                dirs,
+                self.make_sampler(s.render),
+                semantics=False,
+                chunk=chunk,
+                appearance=appearance,
             )
             if semantics:
                 band = self.render_rays(origins, dirs, depth=depth, chunk=chunk, color=False)
@@ -353,7 +361,9 @@ class SemanticNerf(nn.Module):
         out["depth"] = out["depth"] * scale
         miss = torch.nonzero(~ok).squeeze(-1)
         if miss.numel():
-            whole = self.render_rays(origins[miss], dirs[miss], semantics=False, chunk=chunk)
+            whole = self.render_rays(
+                origins[miss], dirs[miss], self.make_sampler(s.render), semantics=False, chunk=chunk
+            )
             for key in ("rgb", "depth", "opacity"):
                 if whole:
                     out[key][miss] = whole[key]
