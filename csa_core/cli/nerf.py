@@ -87,6 +87,14 @@ def add_nerf_commands(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="default: the checkpoint's render sampler",
     )
+    r.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="change a render option of the checkpoint's config for this render only "
+        f"({', '.join(RENDER_KEYS)}*), e.g. sampler.render_novel_estimate=true; repeatable",
+    )
     r.add_argument("--no-previews", action="store_true")
     r.add_argument("--device", default="auto")
     r.add_argument("--overwrite", action="store_true")
@@ -141,13 +149,30 @@ def _fit(args: argparse.Namespace) -> int:
     return 0
 
 
+# Keys (prefixes) of a NeRF config that only decide how a fitted model renders: the one
+# override path (csa_core.overrides) may change them on a loaded checkpoint; everything else
+# describes the fitted weights and is set at ``csa nerf fit``.
+RENDER_KEYS = ("sampler.render", "sampler.max_render_samples", "render_unseen_unknown", "render_chunk")
+
+
 def _render(args: argparse.Namespace) -> int:
     from csa_core.data.scene_io import read_scene
     from csa_core.errors import CSAInputError
     from csa_core.nerf.checkpoint import load_checkpoint
     from csa_core.nerf.render import render_views, write_rendered_views
+    from csa_core.overrides import apply_overrides
 
+    for item in args.set:
+        key = item.partition("=")[0].strip()
+        if not key.startswith(RENDER_KEYS):
+            raise CSAInputError(
+                f"--set {item}",
+                f"{key or 'KEY'} is not a render option: csa nerf render changes only "
+                f"{', '.join(k + '*' for k in RENDER_KEYS)}; the rest belongs to the fitted "
+                "model (csa nerf fit --set)",
+            )
     nerf = load_checkpoint(args.checkpoint, device=args.device)
+    apply_overrides(nerf.config, args.set)
     scene = None
     if args.scene is not None:
         intr = nerf.info.intrinsics

@@ -115,6 +115,16 @@ def test_cli_fit_render_info(tiny_scene, tmp_path, monkeypatch, capsys):
     )
     names = sorted(p.stem for p in (out / "label-nyu40").iterdir())
     assert len(names) == tiny_scene.num_train - 1 and all("_" in n for n in names)
+    # A render option can change for one render; the fitted model's fields cannot.
+    out2 = tmp_path / "novel-estimated"
+    render = ["nerf", "render", str(ckpt), "--views", "novel", "--quiet"]
+    assert _cli([*render, "--out", str(out2), "--set", "sampler.render_novel_estimate=true"]) == 0
+    assert sorted(p.stem for p in (out2 / "label-nyu40").iterdir()) == names
+    with pytest.raises(CSAInputError, match="not a render option"):
+        _cli([*render, "--out", str(tmp_path / "y"), "--set", "field.hidden_dim=8"])
+    with pytest.raises(CSAInputError, match="render_novel_estimat"):
+        _cli([*render, "--out", str(tmp_path / "y"), "--set", "sampler.render_novel_estimat=1"])
+    assert not (tmp_path / "y").exists()
     assert (
         _cli(
             [
