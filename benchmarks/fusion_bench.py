@@ -205,6 +205,16 @@ def miou(labels: dict[str, np.ndarray], frames) -> float:
 # ---- fusers ----------------------------------------------------------------------------
 
 
+def held_out_psnr(frames, colors: dict[str, np.ndarray]) -> float:
+    """PSNR (dB) of rendered ``colors`` (``{frame name: (H, W, 3) uint8}``) against the
+    frames' camera images, from the mean squared error over all of them."""
+    mse = [
+        float(np.mean((colors[f.name].astype(np.float64) - f.color) ** 2)) / 255.0**2
+        for f in frames
+    ]
+    return psnr(float(np.mean(mse)))
+
+
 def measured(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:
     """Run one fuser, ``fn(*args)``; add its peak resident memory to its row."""
     how = reset_peak_rss()
@@ -312,14 +322,14 @@ def nerf_row(
         row["miou_train"], row["miou_val"] = miou(rendered, train), miou(rendered, val)
         return row
     # Colour and geometry at the held-out views, rendered without their measured depth.
-    mses, errs = [], []
+    colors, errs = {}, []
     for f in val:
         v = render_image(nerf, f.pose, scene.intrinsics, semantics=False)
-        mses.append(float(np.mean((v.color.astype(np.float64) - f.color) ** 2) / 255.0**2))
+        colors[f.name] = v.color
         m = f.depth > 0
         errs.append(np.abs(v.depth[m] - f.depth[m]))
     row["render_s_per_view"] = (time.perf_counter() - t0) / len(val)
-    row["val_psnr"] = psnr(float(np.mean(mses)))
+    row["val_psnr"] = held_out_psnr(val, colors)
     row["val_depth_l1_m"] = float(np.concatenate(errs).mean())
     row["val_coverage"] = 1.0
     return row
@@ -376,11 +386,7 @@ def render_row(
         row["miou_train"] = miou(rendered, scene.train_frames)
     row["miou_val"] = miou(rendered, scene.val_frames)
     if colors:
-        mse = [
-            float(np.mean((colors[f.name].astype(np.float64) - f.color) ** 2)) / 255.0**2
-            for f in scene.val_frames
-        ]
-        row["val_psnr"] = psnr(float(np.mean(mse)))
+        row["val_psnr"] = held_out_psnr(scene.val_frames, colors)
     if render == "unseen-unknown":
         row["val_unknown"] = float(
             np.mean([(rendered[f.name] == 0).mean() for f in scene.val_frames])
