@@ -202,3 +202,23 @@ def test_per_view_ray_batches_take_each_view_once_per_epoch(scene):
     assert len(spread.unique()) > 1
     with pytest.raises(IndexError, match="frame"):
         bank.random_ids(4, frame=views)
+
+
+def test_the_cpu_preset_fits_and_joint_trains_its_nerf_at_a_fixed_rate(scene):
+    """`cpu` keeps the NeRF's rate fixed, as the paper does (the `fast` preset decays it):
+    the fit ends at its starting rate and joint training's NeRF steps run at the same rate."""
+    from csa_core.adapt.config import cpu
+    from csa_core.adapt.pseudo_labels import nerf_config
+    from csa_core.nerf.config import preset
+
+    assert preset("fast").optim.final_lr_fraction < 1.0
+    optim = nerf_config(cpu().nerf).optim
+    assert optim.final_lr_fraction == 1.0
+    cfg = tiny_config(steps=6)
+    cfg.optim.final_lr_fraction = optim.final_lr_fraction
+    nerf = fit_semantic_nerf(scene, "label-nyu40", cfg, progress=False)[0]
+    fit = NerfTrainer(nerf, RayBank(scene.train_frames, scene.intrinsics), schedule_steps=6)
+    fit.train(6)
+    assert [g["lr"] for g in fit.optimizer.param_groups] == pytest.approx([optim.lr] * 2)
+    joint = NerfLabelTrainer(nerf, scene, rays_per_step=64)
+    assert [g["lr"] for g in joint.trainer.optimizer.param_groups] == pytest.approx([optim.lr] * 2)
