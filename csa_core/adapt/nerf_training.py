@@ -44,8 +44,9 @@ class NerfLabelTrainer:
             nerf.device,
             frame_rows=_appearance_index(nerf, self.frames),
         )
-        # A lower rate than the fit's start, kept constant: the field is already fitted, only
-        # the labels moved. The free-space term applies from the first step.
+        # The fit's final rate, kept constant (below its start where the preset decays it; the
+        # same fixed rate in ``cpu`` and ``paper``): the field is already fitted, only the
+        # labels moved. The free-space term applies from the first step.
         self.trainer = NerfTrainer(
             nerf,
             self.rays,

@@ -68,7 +68,7 @@ def test_fit_and_joint_training_share_the_loop_with_the_free_space_term(nerf, sc
         for k, w in [("color", 1.0), ("depth", 0.1), ("semantic", 0.04), ("free_space", 1.0)]
     )
     assert terms["loss"] == pytest.approx(expected, rel=1e-5)
-    # Constant rate in joint training: a tenth of the fit's start.
+    # Constant rate in joint training: the fit's final one (a tenth of its start in `fast`).
     lr = [g["lr"] for g in trainer.trainer.optimizer.param_groups]
     assert lr == pytest.approx([nerf.config.optim.lr * nerf.config.optim.final_lr_fraction] * 2)
 
