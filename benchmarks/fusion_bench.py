@@ -65,7 +65,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from nerf_bench import color_camera, load_scene, psnr
+from nerf_bench import color_camera, image_mse, load_scene, psnr
 
 from csa_core.adapt.baselines.mapping import build_voxel_map, render_map_labels
 from csa_core.adapt.baselines.voxel_map import VoxelMapConfig
@@ -208,11 +208,7 @@ def miou(labels: dict[str, np.ndarray], frames) -> float:
 def held_out_psnr(frames, colors: dict[str, np.ndarray]) -> float:
     """PSNR (dB) of rendered ``colors`` (``{frame name: (H, W, 3) uint8}``) against the
     frames' camera images, from the mean squared error over all of them."""
-    mse = [
-        float(np.mean((colors[f.name].astype(np.float64) - f.color) ** 2)) / 255.0**2
-        for f in frames
-    ]
-    return psnr(float(np.mean(mse)))
+    return psnr(float(np.mean([image_mse(colors[f.name], f.color) for f in frames])))
 
 
 def measured(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:

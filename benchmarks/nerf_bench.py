@@ -76,6 +76,11 @@ def psnr(mse: float) -> float:
     return float("inf") if mse <= 0 else -10.0 * np.log10(mse)
 
 
+def image_mse(rendered: np.ndarray, image: np.ndarray) -> float:
+    """Mean squared error of a rendered uint8 colour image against the camera's, in [0, 1] units."""
+    return float(np.mean((rendered.astype(np.float64) - image) ** 2) / 255.0**2)
+
+
 def split_frames(scene, holdout: str):
     """(training, held-out) frames: ``tail`` = the scene's split, ``every:N`` = every N-th frame
     (starting at N // 2) held out."""
@@ -187,7 +192,7 @@ def run(args: argparse.Namespace) -> list[dict]:
             t0 = time.perf_counter()
             v = render_image(nerf, f.pose, scene.intrinsics, semantics=labels is not None)
             times.append(time.perf_counter() - t0)
-            mses.append(float(np.mean((v.color.astype(np.float64) - f.color) ** 2) / 255.0**2))
+            mses.append(image_mse(v.color, f.color))
             if f.depth is not None and (f.depth > 0).any():
                 m = f.depth > 0
                 derr.append(float(np.mean(np.abs(v.depth[m] - f.depth[m]))))
@@ -196,7 +201,7 @@ def run(args: argparse.Namespace) -> list[dict]:
             if nerf.appearance is not None:
                 k = nearest_frame(nerf.info.train_poses, f.pose)
                 c = render_image(nerf, f.pose, scene.intrinsics, semantics=False, appearance=k)
-                near_mses.append(np.mean((c.color.astype(np.float64) - f.color) ** 2) / 255.0**2)
+                near_mses.append(image_mse(c.color, f.color))
         row["val_psnr"] = psnr(float(np.mean(mses)))
         if near_mses:
             row["val_psnr_nearest"] = psnr(float(np.mean(near_mses)))
@@ -208,7 +213,7 @@ def run(args: argparse.Namespace) -> list[dict]:
             for f in train[:: args.train_psnr_every]:
                 i = nerf.info.train_frames.index(f.name)
                 v = render_image(nerf, f.pose, scene.intrinsics, semantics=False, appearance=i)
-                mses.append(float(np.mean((v.color.astype(np.float64) - f.color) ** 2) / 255.0**2))
+                mses.append(image_mse(v.color, f.color))
             row["train_psnr"] = psnr(float(np.mean(mses)))
         # Pseudo-labels at the training views and at the held-out views, each with its
         # measured depth (what `csa nerf render --scene` and the adaptation do), labels only.
