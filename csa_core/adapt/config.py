@@ -38,6 +38,10 @@ PAPER_FIT_EPOCHS = PAPER_PREFIT_EPOCHS + PAPER_JOINT_EPOCHS
 # bound 4, i.e. a finest resolution of 2048 * 4 over the grid's cube (docs/presets.md
 # "The paper preset").
 PAPER_FINEST_RESOLUTION = 2048 * 4
+# docs/method.md "Baselines" (CoTTA): the teacher averages its softmax over these scales, each
+# with and without flip; ours for CPU runs: a quarter of the teacher passes.
+PAPER_COTTA_SCALES = (0.5, 0.75, 1.0, 1.25, 1.5, 1.75)
+CPU_COTTA_SCALES = (0.75, 1.0, 1.5)
 
 
 @dataclass
@@ -190,6 +194,22 @@ class CollapseConfig:
 
 
 @dataclass
+class CoTTABudget:
+    """The CoTTA baseline's test-time augmentation: the teacher's softmax averaged over
+    ``scales`` (each also flipped when ``flip``). CoTTA's other settings are the paper's
+    constants (``csa_core.adapt.baselines.cotta.CoTTAConfig``); seed and device follow the
+    segmentation budget."""
+
+    scales: tuple[float, ...] = PAPER_COTTA_SCALES
+    flip: bool = True
+
+    def __post_init__(self) -> None:
+        self.scales = tuple(self.scales)
+        if not self.scales or any(not s > 0 for s in self.scales):
+            raise ValueError(f"CoTTABudget: scales must be positive numbers, got {self.scales}")
+
+
+@dataclass
 class AdaptConfig:
     """Everything that defines an adaptation run; recorded with every result."""
 
@@ -199,6 +219,7 @@ class AdaptConfig:
     joint: JointBudget = field(default_factory=JointBudget)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     collapse: CollapseConfig = field(default_factory=CollapseConfig)
+    cotta: CoTTABudget = field(default_factory=CoTTABudget)  # the CoTTA baseline's
     # AdaBN: re-estimate BatchNorm statistics on the scene's camera images (docs/method.md
     # "Adapt"), for every method alike; off: no method re-estimates anything. Where, with
     # ``adabn_placement``: "paper" at the end of a step only, and for our method only after
@@ -326,6 +347,7 @@ def cpu() -> AdaptConfig:
         seg=SegBudget(lr=2e-5, epochs=4),
         joint=JointBudget(rounds=2, seg_epochs_per_round=2),
         replay=ReplayConfig(buffer_size=12, max_render_samples=32),
+        cotta=CoTTABudget(scales=CPU_COTTA_SCALES),
     )
 
 
@@ -350,6 +372,7 @@ def tiny() -> AdaptConfig:
         seg=SegBudget(lr=5e-4, epochs=2),
         joint=JointBudget(rounds=2),
         replay=ReplayConfig(buffer_size=6),
+        cotta=CoTTABudget(scales=(1.0,)),  # flips at scale 1 only
     )
 
 

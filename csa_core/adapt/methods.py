@@ -266,21 +266,16 @@ class Mapping(ContinualMethod):
         return {"voxel_size": self.voxel.voxel_size, "search_radius": self.voxel.search_radius}
 
 
-# The ``tiny`` preset (tests) averages the teacher over flips at scale 1 only.
-TINY_COTTA_SCALES = (1.0,)
-
-
 def cotta_config(config: AdaptConfig) -> CoTTAConfig:
-    """CoTTA's settings for a run: the paper's under the ``paper`` preset, its CPU variant
-    (three scales instead of six) under ``cpu``, one scale under ``tiny``; seed and device
-    follow the segmentation budget."""
-    if config.preset == "paper":
-        base = CoTTAConfig()
-    elif config.preset == "tiny":
-        base = CoTTAConfig(scales=TINY_COTTA_SCALES)
-    else:
-        base = CoTTAConfig.cpu()
-    return dataclasses.replace(base, seed=config.seg.seed, device=config.seg.device)
+    """CoTTA's settings for a run: the paper's constants with the run's augmentation
+    (``config.cotta``: six scales in ``paper``, three in ``cpu``, one in ``tiny``); seed and
+    device follow the segmentation budget."""
+    return CoTTAConfig(
+        scales=config.cotta.scales,
+        flip=config.cotta.flip,
+        seed=config.seg.seed,
+        device=config.seg.device,
+    )
 
 
 class CoTTAMethod(ContinualMethod):

@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from csa_core.adapt.config import CPU_COTTA_SCALES, PAPER_COTTA_SCALES
 from csa_core.data.scene import Frame
 from csa_core.device import resolve_device
 from csa_core.seg.predict import as_image_list
@@ -34,9 +35,6 @@ PAPER_LR = 2.5e-6
 PAPER_EMA_MOMENTUM = 0.999
 PAPER_CONFIDENCE_THRESHOLD = 0.69
 PAPER_RESTORE_PROBABILITY = 0.01
-# CoTTA's segmentation experiments average over these scales, each with and without flip.
-PAPER_SCALES = (0.5, 0.75, 1.0, 1.25, 1.5, 1.75)
-CPU_SCALES = (0.75, 1.0, 1.5)  # ours: a quarter of the teacher passes, for CPU runs
 
 
 @dataclass(frozen=True)
@@ -48,7 +46,7 @@ class CoTTAConfig:
     ema_momentum: float = PAPER_EMA_MOMENTUM
     confidence_threshold: float = PAPER_CONFIDENCE_THRESHOLD
     restore_probability: float = PAPER_RESTORE_PROBABILITY
-    scales: tuple[float, ...] = PAPER_SCALES
+    scales: tuple[float, ...] = PAPER_COTTA_SCALES
     flip: bool = True
     soft_labels: bool = False
     seed: int = 0
@@ -67,7 +65,7 @@ class CoTTAConfig:
     @classmethod
     def cpu(cls, **overrides: object) -> CoTTAConfig:
         """The paper's constants with fewer augmentation scales, for CPU runs."""
-        return cls(**{"scales": CPU_SCALES, **overrides})  # type: ignore[arg-type]
+        return cls(**{"scales": CPU_COTTA_SCALES, **overrides})  # type: ignore[arg-type]
 
 
 def module_bytes(model: nn.Module) -> int:

@@ -205,3 +205,30 @@ def test_cotta_continues_online_across_scenes(toy: ToyNet) -> None:
         not torch.equal(a, b)
         for a, b in zip(teacher_after_first, cotta.teacher.parameters(), strict=True)
     )
+
+
+def test_each_preset_sets_the_teachers_scales_and_a_set_overrides_them() -> None:
+    """The augmentation CoTTA's teacher averages over lives in the one config tree
+    (``AdaptConfig.cotta``): six scales with flips in ``paper`` (docs/method.md "Baselines"),
+    three in ``cpu``, one in ``tiny``, and ``--set cotta.scales=...`` reaches the method."""
+    from csa_core.adapt.config import preset
+    from csa_core.adapt.methods import CoTTAMethod
+    from csa_core.errors import CSAInputError
+    from csa_core.overrides import apply_overrides
+
+    def settings(config) -> CoTTAConfig:
+        return CoTTAMethod(config).cotta_settings
+
+    paper = settings(preset("paper"))
+    assert (paper.scales, paper.flip) == ((0.5, 0.75, 1.0, 1.25, 1.5, 1.75), True)
+    assert (paper.lr, paper.ema_momentum, paper.confidence_threshold) == (2.5e-6, 0.999, 0.69)
+    assert paper.restore_probability == 0.01
+    assert settings(preset("cpu")).scales == (0.75, 1.0, 1.5)
+    assert settings(preset("tiny")).scales == (1.0,)
+    config = apply_overrides(
+        preset("cpu"), ["cotta.scales=(0.5,0.75,1.0,1.25,1.5,1.75)", "cotta.flip=false", "seg.seed=4"]
+    )
+    got = settings(config)
+    assert (got.scales, got.flip, got.seed) == ((0.5, 0.75, 1.0, 1.25, 1.5, 1.75), False, 4)
+    with pytest.raises(CSAInputError, match="scales"):
+        apply_overrides(preset("cpu"), ["cotta.scales=(1.0,-0.5)"])
