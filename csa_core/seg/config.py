@@ -79,7 +79,7 @@ class TrainConfig:
             raise ValueError(f"TrainConfig: lr must be > 0, got {self.lr}")
 
 
-@dataclass(frozen=True)
+@dataclass
 class AugmentConfig:
     """Strengths of the training augmentations (ours; the paper does not list them).
 
@@ -98,6 +98,20 @@ class AugmentConfig:
     saturation: float = 0.3
     hue: float = 0.02
     grayscale: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.crop_scale = tuple(self.crop_scale)  # type: ignore[assignment]
+        for name in ("hflip", "grayscale"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"AugmentConfig: {name} is a probability in [0, 1], got {getattr(self, name)}")
+        for name in ("rotation_deg", "crop_aspect_jitter", "brightness", "contrast", "saturation"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"AugmentConfig: {name} must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.hue <= 0.5:
+            raise ValueError(f"AugmentConfig: hue must be in [0, 0.5], got {self.hue}")
+        lo, hi = self.crop_scale
+        if not 0.0 < lo <= hi <= 1.0:
+            raise ValueError(f"AugmentConfig: crop_scale must be (low, high) with 0 < low <= high <= 1, got {self.crop_scale}")
 
 
 @dataclass
