@@ -11,7 +11,8 @@ Values are parsed by the field's declared type, never evaluated as code: ``bool`
 allowed values), ``X | None`` (``none`` or ``null`` for None), and tuples and lists written
 as Python literals (``optim.betas=(0.9,0.99)``), their items checked against the item type.
 A nested dataclass (a section) cannot be set whole, only its fields; an optional section
-(``X | None``) can be set to ``none``.
+(``X | None``) can be set to ``none`` (off) or to ``default`` (on, with the defaults of its
+class, e.g. ``seg.augment=default`` before ``seg.augment.rotation_deg=10``).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ T = TypeVar("T")
 TRUE_WORDS = ("true", "1", "on", "yes")
 FALSE_WORDS = ("false", "0", "off", "no")
 NONE_WORDS = ("none", "null")
+DEFAULT_WORD = "default"  # an optional section switched on with its class's defaults
 
 
 class _BadValue(Exception):
@@ -87,7 +89,8 @@ def _apply_one(config: Any, item: str, flag: str) -> None:
             if value is None and _is_optional_section(_field_types(type(obj), where)[name]):
                 raise CSAInputError(
                     where,
-                    f"{section!r} is none (off) in this config: it has no fields to set",
+                    f"{section!r} is none (off) in this config: it has no fields to set "
+                    f"(switch it on first with {section}={DEFAULT_WORD})",
                 )
             raise CSAInputError(
                 where,
@@ -97,13 +100,17 @@ def _apply_one(config: Any, item: str, flag: str) -> None:
         obj = value
     tp = _field_types(type(obj), where)[name]
     text = text.strip()
+    if _is_optional_section(tp) and text.lower() == DEFAULT_WORD:
+        section_cls = next(a for a in typing.get_args(tp) if dataclasses.is_dataclass(a))
+        _set(obj, name, section_cls(), key, where)
+        return
     if dataclasses.is_dataclass(value):
         optional = type(None) in typing.get_args(tp)
         if optional and text.lower() in NONE_WORDS:
             _set(obj, name, None, key, where)
             return
         fields = ", ".join(f"{key}.{f.name}" for f in dataclasses.fields(value))
-        whole = f" (only to none: {key}=none)" if optional else ""
+        whole = f" (only to none or {DEFAULT_WORD}: {key}=none)" if optional else ""
         raise CSAInputError(
             where, f"{key!r} is a section and cannot be set whole{whole}; set its fields: {fields}"
         )

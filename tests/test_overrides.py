@@ -140,8 +140,16 @@ def test_an_optional_section_can_be_switched_off_but_not_set_whole():
         apply_overrides(outer, ["extra.limit=3"])
     with pytest.raises(CSAInputError, match="expected Inner or none, got '1'"):
         apply_overrides(outer, ["extra=1"])
-    with pytest.raises(CSAInputError, match=r"cannot be set whole \(only to none: extra=none\); set its fields: extra.sizes"):
+    with pytest.raises(CSAInputError, match=r"cannot be set whole \(only to none or default: extra=none\); set its fields: extra.sizes"):
         apply_overrides(Outer(), ["extra=1"])
+    with pytest.raises(CSAInputError, match=r"switch it on first with extra=default"):
+        apply_overrides(Outer(extra=None), ["extra.limit=3"])
+    # ``default`` switches an optional section on with its class's defaults (or resets it).
+    back = apply_overrides(Outer(extra=None), ["extra=default", "extra.limit=3"])
+    assert back.extra == Inner(limit=3)
+    assert apply_overrides(Outer(extra=Inner(limit=5)), ["extra=DEFAULT"]).extra == Inner()
+    with pytest.raises(CSAInputError, match="cannot be set whole"):
+        apply_overrides(Outer(), ["inner=default"])  # not optional: fields only
 
 
 def test_post_init_validation_runs_again_on_the_whole_tree():
@@ -278,6 +286,9 @@ def test_the_augmentation_is_set_field_by_field_and_checked():
     assert adapt_preset("cpu").seg.augment is None  # cpu trains on unaugmented pairs
     with pytest.raises(CSAInputError, match="'seg.augment' is none"):
         apply_overrides(adapt_preset("cpu"), official)
+    # cpu with ours (the earlier cpu) and with the official augmentation
+    assert apply_overrides(adapt_preset("cpu"), ["seg.augment=default"]).seg.augment == adapt_preset("tiny").seg.augment
+    assert apply_overrides(adapt_preset("cpu"), ["seg.augment=default", *official]).seg.augment == official_augment()
     for item, message in (
         ("seg.augment.hflip=1.5", "hflip is a probability"),
         ("seg.augment.crop_scale=(0.9,0.5)", "crop_scale must be"),
