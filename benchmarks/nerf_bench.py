@@ -19,7 +19,9 @@ truth of the corrupted inputs and of the labels rendered at the training and hel
 (each with its measured depth, as pseudo-labels are made; ``miou_val_novel``: held-out views
 rendered without depth). For the voxel-map fusion of the same labels beside each preset, and
 for the Kinect-like hard variant of a scene, use ``benchmarks/fusion_bench.py``.
-``labels_s_per_view``: labels of a view with depth; ``novel_s_per_view``: colour and labels of a
+``labels_s_per_view``: labels of a view with depth; ``--time-pairs`` adds ``pairs_s_per_view``,
+colour and labels of the same views (what training on rendered images needs), and whether their
+labels equal the labels-only ones; ``novel_s_per_view``: colour and labels of a
 view without depth; ``total_s``: fit plus the labels of every frame of the scene.
 ``--reload`` renders everything from the checkpoint written in the storage dtype and read back.
 
@@ -230,6 +232,18 @@ def run(args: argparse.Namespace) -> list[dict]:
             seconds = time.perf_counter() - t0
             fused = {v.name: v.labels for v in views}
             row["labels_s_per_view"] = seconds / len(frames)
+            if args.time_pairs:  # the same views with colour too (NI+NL's image-label pairs)
+                t0 = time.perf_counter()
+                pairs = render_frames(
+                    nerf,
+                    [(f.name, f.pose) for f in frames],
+                    scene.intrinsics,
+                    depths=[f.depth for f in frames],
+                )
+                row["pairs_s_per_view"] = (time.perf_counter() - t0) / len(frames)
+                row["pairs_same_labels"] = all(
+                    np.array_equal(v.labels, fused[v.name]) for v in pairs
+                )
             row["total_s"] = stats.seconds + row["labels_s_per_view"] * len(scene.frames)
             cm_in, cm_vs_in = ConfusionMatrix(), ConfusionMatrix()
             for f in train[:: args.label_every]:
@@ -252,6 +266,8 @@ COLUMNS = [
     ("rays_s", "{:,.0f}"),
     ("samples_s", "{:,.0f}"),
     ("labels_s_per_view", "{:.3f}"),
+    ("pairs_s_per_view", "{:.3f}"),
+    ("pairs_same_labels", "{}"),
     ("novel_s_per_view", "{:.2f}"),
     ("total_s", "{:.0f}"),
     ("val_psnr", "{:.2f}"),
@@ -313,6 +329,11 @@ def main() -> None:
         "--train-psnr-every", type=int, default=0, help="also PSNR of every N-th training view"
     )
     p.add_argument("--val-every", type=int, default=1, help="evaluate every N-th held-out frame")
+    p.add_argument(
+        "--time-pairs",
+        action="store_true",
+        help="also time colour and labels of the label views (pairs_s_per_view)",
+    )
     p.add_argument(
         "--label-every", type=int, default=1, help="evaluate labels on every N-th training frame"
     )

@@ -278,7 +278,12 @@ def begin_step(
     t_eval = time.perf_counter() - t0
     budget = step_nerf_budget(config, scene)
     nerf, pseudo = make_pseudo_labels(
-        model, scene, budget, device, sub_progress(on_progress, 0.0, PSEUDO_LABELS_DONE)
+        model,
+        scene,
+        budget,
+        device,
+        sub_progress(on_progress, 0.0, PSEUDO_LABELS_DONE),
+        color=config.trains_on_rendered_images,
     )
     seconds = {"evaluate": t_eval, **pseudo.seconds}
     decision = check_labels(stage, pseudo.labels, pseudo, config, prior_entropy)

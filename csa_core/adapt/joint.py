@@ -172,7 +172,9 @@ def _per_round(
         notify(progress, f"joint round {r}/{rounds}: NeRF trained", (r - 0.4) / rounds)
         t_render = time.perf_counter()
         seconds["joint_nerf"] += t_render - t_nerf
-        rendered, labels = render_pairs(nerf, scene)
+        # Images only where the next round trains on them; labels are the same either way.
+        color = config.joint.render_images and r < rounds
+        rendered, labels = render_pairs(nerf, scene, color=color)
         seconds["joint_render"] += time.perf_counter() - t_render
         result.history.append(
             {
@@ -282,7 +284,7 @@ def _per_batch(
     result.nerf_steps["joint"] = nerf_trainer.steps_done
     if any(NYU40_FOLDER in f.labels for f in frames):  # scored only where there is ground truth
         t = time.perf_counter()
-        _, final = render_pairs(nerf, scene)
+        _, final = render_pairs(nerf, scene, color=False)
         seconds["joint_render"] += time.perf_counter() - t
         result.final_label_miou = label_miou(final, scene)
     else:

@@ -104,6 +104,11 @@ class PseudoLabels:
     seconds: dict[str, float] = field(default_factory=dict)
 
     def images(self, rendered: bool) -> list[np.ndarray]:
+        if rendered and not self.rendered:
+            raise ValueError(
+                "PseudoLabels: the NeRF's images were not rendered (labels only, because the "
+                "config trains on camera images: AdaptConfig.trains_on_rendered_images)"
+            )
         source = self.rendered if rendered else self.camera
         return [source[n] for n in self.names]
 
@@ -146,10 +151,12 @@ def render_at_frames(
 
 
 def render_pairs(
-    nerf: SemanticNerf, scene: Scene
+    nerf: SemanticNerf, scene: Scene, color: bool = True
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """NeRF images and labels at the scene's training views."""
-    return render_at_frames(nerf, scene.train_frames, scene.intrinsics)
+    """NeRF images and labels at the scene's training views (``color=False``: labels only,
+    the images dict empty; the labels are the same either way, at about half the time on
+    views with depth: benchmarks/RESULTS.md "Labels without colour")."""
+    return render_at_frames(nerf, scene.train_frames, scene.intrinsics, color=color)
 
 
 def make_pseudo_labels(
@@ -158,8 +165,11 @@ def make_pseudo_labels(
     budget: NerfBudget,
     device: str | None = None,
     on_progress: ProgressCallback | None = None,
+    color: bool = True,
 ) -> tuple[SemanticNerf, PseudoLabels]:
-    """Predict the training frames, fit a NeRF to the predictions, render labels and images.
+    """Predict the training frames, fit a NeRF to the predictions, render labels and images
+    (``color=False``: labels only, ``PseudoLabels.rendered`` empty; for a step that trains
+    the network on camera images).
 
     ``on_progress`` (:mod:`csa_core.progress`) hears the NeRF fit's steps (most of the time)
     and the end of the semantic steps and of the rendering."""
@@ -178,7 +188,7 @@ def make_pseudo_labels(
     )
     notify(on_progress, f"NeRF semantic steps ({nerf.config.optim.semantic_steps})", 0.9)
     t2 = time.perf_counter()
-    rendered, labels = render_pairs(nerf, scene)
+    rendered, labels = render_pairs(nerf, scene, color=color)
     t3 = time.perf_counter()
     notify(on_progress, f"rendered pseudo-labels of {len(frames)} views", 1.0)
     pseudo = PseudoLabels(

@@ -48,7 +48,7 @@ def run(inputs: ExperimentInputs) -> ExperimentReport:
                     config.seg.seed,
                     config.seg.device,
                 )
-            _, pseudo = make_pseudo_labels(net, scene, budget, config.seg.device)
+            _, pseudo = make_pseudo_labels(net, scene, budget, config.seg.device, color=False)
             mapped = mapping_pseudo_labels(scene, pseudo.predictions)
             values = {
                 "network": label_miou(pseudo.predictions, scene),

@@ -127,16 +127,16 @@ def test_the_tiny_step_keeps_the_networks_class_mix(pretrained, target_scenes, s
         assert decision.report.entropy > 0.6 * label_entropy(pseudo.predictions)
 
 
-def _collapsed_pseudo_labels(model, scene, budget, device=None, on_progress=None):
+def _collapsed_pseudo_labels(model, scene, budget, device=None, on_progress=None, color=True):
     """Pseudo-labels that collapsed to one class, as joint training produces on bad scenes."""
-    nerf, pseudo = make_pseudo_labels(model, scene, budget, device, on_progress)
+    nerf, pseudo = make_pseudo_labels(model, scene, budget, device, on_progress, color)
     pseudo.labels = {k: np.full_like(v, 1) for k, v in pseudo.labels.items()}
     return nerf, pseudo
 
 
-def _collapsed_renders(nerf, scene):
+def _collapsed_renders(nerf, scene, color=True):
     """The NeRF's renders in every joint round, with its labels collapsed to one class."""
-    images, labels = render_pairs(nerf, scene)
+    images, labels = render_pairs(nerf, scene, color)
     return images, {k: np.full_like(v, 1) for k, v in labels.items()}
 
 

@@ -1,6 +1,6 @@
-"""The continual step: replay from any memory bank at the config's sample cap, and what the
+"""The continual step: replay from any memory bank at the config's sample cap, what the
 collapse guard leaves behind (a stopped joint training restores the NeRF with the network;
-a skipped scene banks no NeRF and no BatchNorm statistics)."""
+a skipped scene banks no NeRF and no BatchNorm statistics), and which renders make images."""
 
 from __future__ import annotations
 
@@ -79,9 +79,9 @@ def test_stopped_joint_training_restores_the_nerf_with_the_network(
     snapshots: list[dict[str, torch.Tensor]] = []
     round_labels = []
 
-    def renders(nerf, scene):
+    def renders(nerf, scene, color=True):
         snapshots.append(_state_dict(nerf))
-        images, labels = render_pairs(nerf, scene)
+        images, labels = render_pairs(nerf, scene, color)
         round_labels.append(labels)
         return images, labels
 
@@ -114,14 +114,14 @@ def test_stop_joint_rolls_back_nerf_and_network_in_place(pretrained, target_scen
     seen: list[dict[str, torch.Tensor]] = []
     networks: list[dict[str, torch.Tensor]] = []
 
-    def renders(nerf, scene):
+    def renders(nerf, scene, color=True):
         seen.append(_state_dict(nerf))
-        return render_pairs(nerf, scene)
+        return render_pairs(nerf, scene, color)
 
     original = finetune.make_pseudo_labels
 
-    def pseudo_labels(model, scene, budget, device=None, on_progress=None):
-        nerf, pseudo = original(model, scene, budget, device, on_progress)
+    def pseudo_labels(model, scene, budget, device=None, on_progress=None, color=True):
+        nerf, pseudo = original(model, scene, budget, device, on_progress, color)
         seen.append(_state_dict(nerf))  # the pre-fit NeRF, before any joint round
         networks.append({k: p.detach().clone() for k, p in model.named_parameters()})
         return nerf, pseudo
@@ -190,3 +190,66 @@ def test_a_nerf_whose_labels_the_guard_rejected_is_not_banked(
     second = continual_step(state, model, target_scenes[1])
     assert second["replay"] == {} and second["nerf_banked"] and "not_banked" not in second
     assert state.bank.scenes == [target_scenes[1].name]
+
+
+def _spy_colour(monkeypatch, force: bool | None = None) -> list[tuple[str, bool]]:
+    """Record the ``color`` of every pseudo-label render of a step (the pre-fit's and each
+    joint round's); ``force`` renders with that value instead."""
+    calls: list[tuple[str, bool]] = []
+    original = finetune.make_pseudo_labels
+
+    def pseudo_labels(model, scene, budget, device=None, on_progress=None, color=True):
+        calls.append(("prefit", color))
+        return original(model, scene, budget, device, on_progress, color if force is None else force)
+
+    def renders(nerf, scene, color=True):
+        calls.append(("round", color))
+        return render_pairs(nerf, scene, color if force is None else force)
+
+    monkeypatch.setattr(finetune, "make_pseudo_labels", pseudo_labels)
+    monkeypatch.setattr("csa_core.adapt.joint.render_pairs", renders)
+    return calls
+
+
+def test_joint_training_on_camera_images_renders_labels_only(pretrained, target_scenes, monkeypatch):
+    """With ``joint.render_images=False`` (the ``cpu`` preset) no NeRF image is rendered, and
+    rendering them anyway changes nothing: the same network weights and label scores."""
+    config = tiny_config("joint")
+    config.joint.render_images = False
+    assert not config.trains_on_rendered_images
+    scene = target_scenes[0]
+    calls = _spy_colour(monkeypatch)
+    lean = copy.deepcopy(pretrained)
+    result = finetune.adapt_one_step(lean, scene, config, evaluate_before=False)
+    assert calls == [("prefit", False)] + [("round", False)] * config.joint.rounds
+    assert [d.action for d in result.decisions] == ["continue"] * (1 + config.joint.rounds)
+
+    monkeypatch.undo()
+    _spy_colour(monkeypatch, force=True)
+    full = copy.deepcopy(pretrained)
+    forced = finetune.adapt_one_step(full, scene, config, evaluate_before=False)
+    assert _equal(_state_dict(lean), _state_dict(full))
+    assert result.final_label_miou == forced.final_label_miou
+    assert result.after == forced.after
+
+
+def test_joint_training_on_renders_skips_the_last_rounds_images(pretrained, target_scenes, monkeypatch):
+    """With rendered images (``tiny``, ``paper``) the pre-fit and every round but the last
+    render images; the last round's labels only feed the guard and the score."""
+    config = tiny_config("joint")
+    assert config.joint.render_images and config.trains_on_rendered_images
+    calls = _spy_colour(monkeypatch)
+    finetune.adapt_one_step(copy.deepcopy(pretrained), target_scenes[0], config, evaluate_before=False)
+    rounds = config.joint.rounds
+    assert calls == [("prefit", True)] + [("round", True)] * (rounds - 1) + [("round", False)]
+
+
+def test_labels_only_pseudo_labels_refuse_rendered_images(pretrained, target_scenes):
+    from csa_core.adapt.pseudo_labels import make_pseudo_labels
+
+    scene = target_scenes[1]
+    _, lean = make_pseudo_labels(pretrained, scene, tiny_config().nerf, color=False)
+    assert lean.rendered == {} and lean.labels.keys() == set(lean.names)
+    assert len(lean.images(False)) == len(lean.names)
+    with pytest.raises(ValueError, match="not rendered"):
+        lean.images(True)
