@@ -343,7 +343,7 @@ def cpu() -> AdaptConfig:
     1.2 ACC and the official one 1.4 against none: benchmarks/RESULTS.md "Deviations measured
     with the multi-step experiment, second set"). The joint rounds train the network on the
     camera images with the NeRF's labels (the paper: on its rendered images): at 300 fit steps
-    the renders are blurred, and over 3 seeds camera images gave 0.9 ACC more (27.7 against
+    the renders are blurred, and over 3 seeds camera images gave 0.8 ACC more (27.6 against
     26.8; benchmarks/RESULTS.md "Joint rounds on camera images"); the step then renders labels
     only, which takes about half the time. The NeRF's learning rate is fixed, as in the
     paper (the ``fast`` preset decays it; at 300 steps the decay cost NeRF labels and render
