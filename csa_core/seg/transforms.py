@@ -8,6 +8,8 @@ touches the image only.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -28,10 +30,12 @@ class JointAugment:
 
     def __init__(self, config: AugmentConfig | None = None):
         self.config = config or AugmentConfig()
-        self._pipelines: dict[tuple[int, int], v2.Compose] = {}
+        self._pipelines: dict[tuple, v2.Compose] = {}
 
     def _pipeline(self, height: int, width: int) -> v2.Compose:
-        key = (height, width)
+        # Keyed by the config's values too: ``AugmentConfig`` is mutable (``--set
+        # seg.augment.*``), and a pipeline built before a change must not outlive it.
+        key = (height, width, dataclasses.astuple(self.config))
         if key not in self._pipelines:
             c = self.config
             aspect = width / height
@@ -58,7 +62,8 @@ class JointAugment:
                 steps.append(v2.ColorJitter(c.brightness, c.contrast, c.saturation, c.hue))
             if c.grayscale > 0:
                 steps.append(v2.RandomGrayscale(c.grayscale))
-            self._pipelines[key] = v2.Compose(steps)
+            # Every strength zero is a valid config (an override can set it): the identity.
+            self._pipelines[key] = v2.Compose(steps or [v2.Identity()])
         return self._pipelines[key]
 
     def __call__(self, image: Tensor, labels: Tensor) -> tuple[Tensor, Tensor]:

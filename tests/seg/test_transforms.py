@@ -87,6 +87,19 @@ def test_flip_alone_mirrors_both_exactly():
     assert torch.equal(out_img, image.flip(-1)) and torch.equal(out_lab, labels.flip(-1))
 
 
+def test_a_changed_config_reaches_an_augmenter_already_used():
+    image, labels = _pair()
+    config = AugmentConfig(
+        hflip=0.0, rotation_deg=0.0, crop_scale=(1.0, 1.0), brightness=0, contrast=0, saturation=0, hue=0
+    )
+    aug = JointAugment(config)
+    out_img, out_lab = aug(image, labels)
+    assert torch.equal(out_img, image) and torch.equal(out_lab, labels)
+    config.hflip = 1.0  # as an override would set it
+    out_img, out_lab = aug(image, labels)
+    assert torch.equal(out_img, image.flip(-1)) and torch.equal(out_lab, labels.flip(-1))
+
+
 def test_rotation_fills_with_unknown_not_a_class():
     torch.manual_seed(3)
     image, labels = _pair()
