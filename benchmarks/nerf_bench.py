@@ -221,28 +221,22 @@ def run(args: argparse.Namespace) -> list[dict]:
         # measured depth (what `csa nerf render --scene` and the adaptation do), labels only.
         if labels is not None:
             frames = train[:: args.label_every] + held_out
-            t0 = time.perf_counter()
-            views = render_frames(
-                nerf,
-                [(f.name, f.pose) for f in frames],
-                scene.intrinsics,
-                depths=[f.depth for f in frames],
-                color=False,
-            )
-            seconds = time.perf_counter() - t0
-            fused = {v.name: v.labels for v in views}
-            row["labels_s_per_view"] = seconds / len(frames)
-            if args.time_pairs:  # the same views with colour too (NI+NL's image-label pairs)
+            cameras = [(f.name, f.pose) for f in frames]
+            depths = [f.depth for f in frames]
+            # Labels only (what the adaptation renders), then with --time-pairs the same views
+            # with colour too (NI+NL's image-label pairs).
+            modes = [("labels", False)] + ([("pairs", True)] if args.time_pairs else [])
+            rendered = {}
+            for key, color in modes:
                 t0 = time.perf_counter()
-                pairs = render_frames(
-                    nerf,
-                    [(f.name, f.pose) for f in frames],
-                    scene.intrinsics,
-                    depths=[f.depth for f in frames],
+                rendered[key] = render_frames(
+                    nerf, cameras, scene.intrinsics, depths=depths, color=color
                 )
-                row["pairs_s_per_view"] = (time.perf_counter() - t0) / len(frames)
+                row[f"{key}_s_per_view"] = (time.perf_counter() - t0) / len(frames)
+            fused = {v.name: v.labels for v in rendered["labels"]}
+            if args.time_pairs:
                 row["pairs_same_labels"] = all(
-                    np.array_equal(v.labels, fused[v.name]) for v in pairs
+                    np.array_equal(v.labels, fused[v.name]) for v in rendered["pairs"]
                 )
             row["total_s"] = stats.seconds + row["labels_s_per_view"] * len(scene.frames)
             cm_in, cm_vs_in = ConfusionMatrix(), ConfusionMatrix()
