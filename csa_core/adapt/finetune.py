@@ -339,7 +339,7 @@ def adapt_one_step(
         result.trained = False
     else:
         labels = pseudo.predictions if decision.action == "fallback_predictions" else pseudo.labels
-        rendered = config.mode == "ni_nl" and decision.action == "continue"
+        rendered = config.trains_on_rendered_images and decision.action == "continue"
         losses = finetune_on_labels(
             model,
             pseudo.images(rendered),

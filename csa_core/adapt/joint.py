@@ -98,7 +98,7 @@ def joint_adapt(
         result.history = [{"epoch": k + 1, "loss": loss} for k, loss in enumerate(losses)]
         seconds["joint_seg"] += time.perf_counter() - t
     else:
-        rendered_training = config.joint.render_images
+        rendered_training = config.trains_on_rendered_images
         schedule = _per_batch if config.joint.schedule == "batch" else _per_round
         schedule(
             model,
