@@ -47,7 +47,8 @@ checkpoint file) and peak memory: the process's peak resident set size while tha
 and rendered (Linux: VmHWM, reset before each fuser through /proc/self/clear_refs; elsewhere
 ``resource.getrusage``, the peak since the process started). It includes the interpreter,
 the libraries and the scene in memory; ``RSS before`` is the resident size when the fuser
-started.
+started. ``--per-class`` also prints, per scene and variant, every fuser's IoU of each class
+present (train / val views); ``--json`` always holds them.
 """
 
 from __future__ import annotations
@@ -71,6 +72,7 @@ from csa_core.adapt.baselines.mapping import build_voxel_map, render_map_labels
 from csa_core.adapt.baselines.voxel_map import VoxelMapConfig
 from csa_core.atomic_io import write_text_atomic
 from csa_core.data.label_noise import corrupt_labels
+from csa_core.data.nyu40 import CLASS_NAMES
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.data.synth import NOISY_FOLDER, degrade_scene, family_names, parse_size
 from csa_core.errors import CSAInputError
@@ -195,11 +197,29 @@ def prepare(scene: Scene, labelled: bool, variant: str, args: argparse.Namespace
     return "per-frame errors"
 
 
-def miou(labels: dict[str, np.ndarray], frames) -> float:
+def confusion(labels: dict[str, np.ndarray], frames) -> ConfusionMatrix:
     matrix = ConfusionMatrix()
     for f in frames:
         matrix.update(labels[f.name], f.labels[NYU40_FOLDER])
-    return matrix.miou()
+    return matrix
+
+
+def miou(labels: dict[str, np.ndarray], frames) -> float:
+    return confusion(labels, frames).miou()
+
+
+def label_scores(labels: dict[str, np.ndarray], *splits: tuple[str, Any]) -> dict[str, Any]:
+    """``miou_SPLIT`` and ``class_iou_SPLIT`` (IoU per class present, by class name) of
+    ``labels`` for each ``(SPLIT, frames)``."""
+    out: dict[str, Any] = {}
+    for split, frames in splits:
+        matrix = confusion(labels, frames)
+        iou = matrix.per_class_iou()
+        out[f"miou_{split}"] = matrix.miou()
+        out[f"class_iou_{split}"] = {
+            CLASS_NAMES[c]: float(iou[c]) for c in matrix.present_classes()
+        }
+    return out
 
 
 # ---- fusers ----------------------------------------------------------------------------
@@ -248,7 +268,7 @@ def map_rows(scene: Scene, has_labels: bool, args: argparse.Namespace) -> list[d
             len(views) if has_labels else len(val)
         )
         if has_labels:
-            row["miou_train"], row["miou_val"] = miou(labels, train), miou(labels, val)
+            row.update(label_scores(labels, ("train", train), ("val", val)))
         else:
             measured_px = [f.depth > 0 for f in val]
             hit = [cast[f.name][1] > 0 for f in val]
@@ -269,7 +289,7 @@ def map_rows(scene: Scene, has_labels: bool, args: argparse.Namespace) -> list[d
             row = {"fuser": "map, depth read-back", "fit_s": rows[0]["fit_s"]}
             row["render_s_per_view"] = (time.perf_counter() - t0) / len(views)
             row["stored_mb"] = rows[0]["stored_mb"]
-            row["miou_train"], row["miou_val"] = miou(labels, train), miou(labels, val)
+            row.update(label_scores(labels, ("train", train), ("val", val)))
             return row
 
         rows.append(measured(depth_read))
@@ -315,7 +335,7 @@ def nerf_row(
             for v in render_views(nerf, scene, views, semantics=True, color=False):
                 rendered[v.name] = v.labels
         row["render_s_per_view"] = (time.perf_counter() - t0) / len(scene.frames)
-        row["miou_train"], row["miou_val"] = miou(rendered, train), miou(rendered, val)
+        row.update(label_scores(rendered, ("train", train), ("val", val)))
         return row
     # Colour and geometry at the held-out views, rendered without their measured depth.
     colors, errs = {}, []
@@ -378,9 +398,8 @@ def render_row(
     row = {"fuser": f"{fit['fuser']}, {suffix}", "fit_s": fit["fit_s"]}
     row["render_s_per_view"] = seconds
     row["stored_mb"] = fit["stored_mb"]
-    if with_depth:
-        row["miou_train"] = miou(rendered, scene.train_frames)
-    row["miou_val"] = miou(rendered, scene.val_frames)
+    splits = [("train", scene.train_frames)] if with_depth else []
+    row.update(label_scores(rendered, *splits, ("val", scene.val_frames)))
     if colors:
         row["val_psnr"] = held_out_psnr(scene.val_frames, colors)
     if render == "unseen-unknown":
@@ -409,8 +428,9 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
                     {
                         **head,
                         "fuser": "input (per frame)",
-                        "miou_train": miou(inputs, scene.train_frames),
-                        "miou_val": miou(inputs, scene.val_frames),
+                        **label_scores(
+                            inputs, ("train", scene.train_frames), ("val", scene.val_frames)
+                        ),
                     }
                 )
             scored = has_labels and labelled
@@ -484,6 +504,32 @@ def table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def class_tables(rows: list[dict[str, Any]]) -> str:
+    """One table per scene and variant: IoU of each class present (rows, by name) for each
+    fuser (columns), on the train / val views."""
+    out = []
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        if "class_iou_val" in r:
+            groups.setdefault((r["scene"], r["variant"]), []).append(r)
+    for (scene, variant), group in groups.items():
+        names = sorted(
+            {c for r in group for c in r["class_iou_val"]}
+            | {c for r in group for c in r.get("class_iou_train", {})}
+        )
+        out.append(f"\n{scene} ({variant}): IoU per class, train / val views")
+        out.append("| class | " + " | ".join(r["fuser"] for r in group) + " |")
+        out.append("|---|" + "---|" * len(group))
+        for c in names:
+            cells = []
+            for r in group:
+                t = r.get("class_iou_train", {}).get(c)
+                v = r["class_iou_val"].get(c)
+                cells.append(" / ".join("-" if x is None else f"{100 * x:.1f}" for x in (t, v)))
+            out.append(f"| {c} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -516,6 +562,9 @@ def main() -> None:
     p.add_argument("--voxel", type=float, default=0.05, help="voxel size of the map, metres")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="auto")
+    p.add_argument(
+        "--per-class", action="store_true", help="also print each fuser's IoU of every class"
+    )
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
     args = p.parse_args()
     bad = set(args.variants.split(",")) - {"clean", "hard"}
@@ -547,6 +596,8 @@ def main() -> None:
         f"device {args.device_torch}; peak RSS by {how}"
     )
     print(table(rows))
+    if args.per_class:
+        print(class_tables(rows))
     if args.json:
         write_text_atomic(args.json, json.dumps({"argv": sys.argv, "rows": rows}, indent=1))
 
