@@ -443,7 +443,8 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
                     fused.append(measured(render_row, scene, fitted, fit, render))
             for row in fused:
                 rows.append({**head, **row})
-                print("  " + ", ".join(f"{k} {fmt(k, v)}" for k, v in row.items()), flush=True)
+                shown = {k: v for k, v in row.items() if not k.startswith("class_iou_")}
+                print("  " + ", ".join(f"{k} {fmt(k, v)}" for k, v in shown.items()), flush=True)
     return rows
 
 
