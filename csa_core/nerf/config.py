@@ -163,8 +163,10 @@ class OptimConfig:
     semantics_in_fit: bool = True
     # Where a step's rays come from: "all" (ours) draws pixels from every training view at
     # once; "per_view" draws the whole batch from one view, the views in a fresh random
-    # order each epoch (the official code's batches; the ``paper`` adaptation preset).
-    ray_batches: Literal["all", "per_view"] = "all"
+    # order each epoch (the official code's batches; the ``paper`` adaptation preset);
+    # "class_balanced" (ours, experimental) draws from every view, rare labels more often,
+    # each ray's losses weighted back by its draw probability (``RayBank.balanced_ids``).
+    ray_batches: Literal["all", "per_view", "class_balanced"] = "all"
 
 
 @dataclass

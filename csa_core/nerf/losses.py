@@ -11,34 +11,46 @@ from csa_core.nerf.rendering import RaySamples, accumulate_along_rays
 _LOG_EPS = 1e-8
 
 
-def color_loss(pred: Tensor, target: Tensor) -> Tensor:
+def _mean(values: Tensor, ray_weight: Tensor | None) -> Tensor:
+    """Mean of per-ray ``values``, or their ``ray_weight``-weighted mean (self-normalised): the
+    importance weights of rays drawn non-uniformly (``RayBank.balanced_ids``)."""
+    if ray_weight is None:
+        return values.mean()
+    return (values * ray_weight).sum() / ray_weight.sum().clamp_min(_LOG_EPS)
+
+
+def color_loss(pred: Tensor, target: Tensor, ray_weight: Tensor | None = None) -> Tensor:
     """Mean squared error of rendered vs. observed colour in [0, 1]."""
-    return torch.mean((pred - target) ** 2)
+    return _mean(((pred - target) ** 2).mean(dim=-1), ray_weight)
 
 
-def depth_loss(pred: Tensor, target: Tensor) -> Tensor:
+def depth_loss(pred: Tensor, target: Tensor, ray_weight: Tensor | None = None) -> Tensor:
     """Mean absolute depth error (metres) over the rays where the sensor measured depth (> 0)."""
     valid = target > 0
     if not bool(valid.any()):
         return pred.sum() * 0.0
-    return torch.mean(torch.abs(pred[valid] - target[valid]))
+    w = None if ray_weight is None else ray_weight[valid]
+    return _mean(torch.abs(pred[valid] - target[valid]), w)
 
 
-def semantic_loss(probs: Tensor, labels: Tensor) -> Tensor:
+def semantic_loss(probs: Tensor, labels: Tensor, ray_weight: Tensor | None = None) -> Tensor:
     """Negative log-likelihood of NYU40 ids ``labels`` (R,) under the normalised class
     distributions ``probs`` (R, 40); channel ``k`` is id ``k + 1``, id 0 (unknown) is ignored."""
     known = labels > 0
     if not bool(known.any()):
         return probs.sum() * 0.0
     p = probs[known].gather(1, (labels[known].long() - 1).unsqueeze(1)).squeeze(1)
-    return -torch.log(p.clamp_min(_LOG_EPS)).mean()
+    w = None if ray_weight is None else ray_weight[known]
+    return _mean(-torch.log(p.clamp_min(_LOG_EPS)), w)
 
 
-def free_space_loss(weights: Tensor, in_front: Tensor, samples: RaySamples) -> Tensor:
+def free_space_loss(
+    weights: Tensor, in_front: Tensor, samples: RaySamples, ray_weight: Tensor | None = None
+) -> Tensor:
     """Mean over rays of the rendering weight that falls on samples ``in_front`` (S,) of the
     measured surface: carves the free space that depth-guided sampling visits only sparsely."""
     w = accumulate_along_rays(weights * in_front, None, samples).squeeze(-1)
-    return w.mean()
+    return _mean(w, ray_weight)
 
 
 def psnr(mse: Tensor | float) -> float:
@@ -50,14 +62,16 @@ def psnr(mse: Tensor | float) -> float:
 def total_loss(
     out: dict[str, Tensor], batch: dict[str, Tensor], cfg: LossConfig
 ) -> dict[str, Tensor]:
-    """Weighted sum of the three losses; returns every term and ``loss``."""
-    terms = {"color": color_loss(out["rgb"], batch["rgb"])}
+    """Weighted sum of the three losses; returns every term and ``loss``. A batch with
+    ``ray_weight`` (R,) averages every term over rays with those weights."""
+    rw = batch.get("ray_weight")
+    terms = {"color": color_loss(out["rgb"], batch["rgb"], rw)}
     total = cfg.color * terms["color"]
     if cfg.depth > 0 and "depth" in batch:
-        terms["depth"] = depth_loss(out["depth"], batch["depth"])
+        terms["depth"] = depth_loss(out["depth"], batch["depth"], rw)
         total = total + cfg.depth * terms["depth"]
     if cfg.semantic > 0 and "labels" in batch and "semantics" in out:
-        terms["semantic"] = semantic_loss(out["semantics"], batch["labels"])
+        terms["semantic"] = semantic_loss(out["semantics"], batch["labels"], rw)
         total = total + cfg.semantic * terms["semantic"]
     if cfg.free_space > 0 and "free_space" in out:
         terms["free_space"] = out["free_space"]

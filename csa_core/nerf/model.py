@@ -413,7 +413,7 @@ class SemanticNerf(nn.Module):
             in_front = ((d > 0) & (samples.t_ends < d - half)).float()
             out = dict(out)
             out["free_space"] = free_space_scale * free_space_loss(
-                out["weights"], in_front, samples
+                out["weights"], in_front, samples, target.get("ray_weight")
             )
         return total_loss(out, target, self.config.loss)
 

@@ -96,6 +96,42 @@ class RayBank:
                 f"labels are {stack.shape[2]}x{stack.shape[1]}, frames have {self.hw} pixels"
             )
         self.labels = torch.as_tensor(stack.reshape(-1), device=self.device)
+        self._balanced: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
+
+    def _class_strata(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Pixel ids sorted by label, and per label id (0..255): first position, count, and
+        the share of draws ``RayBank.balanced_ids`` gives it."""
+        if self._balanced is None:
+            assert self.labels is not None
+            labels = self.labels.long()
+            order = torch.argsort(labels, stable=True)
+            counts = torch.bincount(labels, minlength=256)
+            starts = torch.cumsum(counts, 0) - counts
+            share = counts.double() / counts.sum()
+            root = counts.double().sqrt()
+            draw = 0.5 * share + 0.5 * root / root.sum()
+            self._balanced = (order, starts, counts, draw)
+        return self._balanced
+
+    def balanced_ids(
+        self, n: int, generator: torch.Generator | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """``n`` pixel ids drawn label-stratified, and their importance weights (mean 1 over
+        the bank). A label id with share ``p`` of the pixels is drawn with probability
+        ``q = p / 2 + sqrt(count) / (2 * sum sqrt(counts))``, so rare labels are drawn more
+        often than uniformly (and no label less than half as often), and a drawn pixel
+        weighs ``p / q``: weighted, every loss keeps its expectation under uniform draws (and
+        so its optimum), with less variance on the rare labels."""
+        if self.labels is None:
+            raise ValueError("balanced ray draws need labels (RayBank.set_labels)")
+        order, starts, counts, draw = self._class_strata()
+        cls = torch.multinomial(draw.float(), n, replacement=True, generator=generator)
+        u = torch.rand(n, device=self.device, generator=generator, dtype=torch.float64)
+        offset = (u * counts[cls].double()).long().clamp_max(counts[cls] - 1)
+        ids = order[starts[cls] + offset]
+        share = counts.double() / counts.sum()
+        weight = (share[cls] / draw[cls]).float()
+        return ids, weight
 
     def random_ids(
         self, n: int, generator: torch.Generator | None = None, frame: int | None = None

@@ -67,9 +67,14 @@ class NerfTrainer:
         decay = math.exp(math.log(fraction) / max(1, schedule_steps))
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, decay)
         self.generator = torch.Generator(device=rays.device).manual_seed(seed)
-        if o.ray_batches not in ("all", "per_view"):
-            raise ValueError(f"optim.ray_batches must be 'all' or 'per_view', got {o.ray_batches!r}")
+        if o.ray_batches not in ("all", "per_view", "class_balanced"):
+            raise ValueError(
+                "optim.ray_batches must be 'all', 'per_view' or 'class_balanced', "
+                f"got {o.ray_batches!r}"
+            )
         self.per_view = o.ray_batches == "per_view"
+        # Label-stratified draws need labels; a bank without them draws uniformly.
+        self.balanced = o.ray_batches == "class_balanced" and rays.labels is not None
         self._view_order: list[int] = []
         self.steps_done = 0
         self.samples_seen = 0
@@ -78,22 +83,28 @@ class NerfTrainer:
         warm = self.free_space_warmup
         return min(1.0, max(0.0, (self.steps_done - warm) / max(warm, 1.0)))
 
-    def draw(self) -> Tensor:
-        """The next step's pixel ids: from every view, or (``optim.ray_batches="per_view"``)
-        from the next view of this epoch's random order."""
+    def draw(self) -> tuple[Tensor, Tensor | None]:
+        """The next step's pixel ids and their importance weights (None: uniform): from every
+        view, from the next view of this epoch's random order (``optim.ray_batches="per_view"``),
+        or label-stratified with weights (``"class_balanced"``, ``RayBank.balanced_ids``)."""
+        if self.balanced:
+            return self.rays.balanced_ids(self.rays_per_step, self.generator)
         if not self.per_view:
-            return self.rays.random_ids(self.rays_per_step, self.generator)
+            return self.rays.random_ids(self.rays_per_step, self.generator), None
         if not self._view_order:
             n = len(self.rays.frames)
             order = torch.randperm(n, generator=self.generator, device=self.generator.device)
             self._view_order = order.tolist()[::-1]
-        return self.rays.random_ids(self.rays_per_step, self.generator, self._view_order.pop())
+        ids = self.rays.random_ids(self.rays_per_step, self.generator, self._view_order.pop())
+        return ids, None
 
     def step(self) -> dict[str, Tensor]:
         """One Adam step on a fresh ray batch; returns the loss terms (tensors)."""
         nerf, gen = self.nerf, self.generator
-        ids = self.draw()
+        ids, ray_weight = self.draw()
         origins, dirs, target = self.rays.batch(ids)
+        if ray_weight is not None:
+            target["ray_weight"] = ray_weight
         self.sampler.update_every_n_steps(self.steps_done, nerf.density_fn, gen)
         samples = nerf.sample(
             origins, dirs, self.sampler, depth=target["depth"], stratified=True, generator=gen

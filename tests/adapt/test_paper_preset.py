@@ -92,7 +92,7 @@ def test_the_nerf_is_the_papers():
     groups = trainer.optimizer.param_groups
     assert {(g["lr"], g["betas"], g["eps"]) for g in groups} == {(1e-2, (0.9, 0.99), 1e-15)}
     assert trainer.scheduler.gamma == 1.0
-    frames = {int(i) // trainer.rays.hw for i in trainer.draw()}
+    frames = {int(i) // trainer.rays.hw for i in trainer.draw()[0]}
     assert len(frames) == 1  # one view per step
 
 

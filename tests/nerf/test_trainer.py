@@ -193,15 +193,98 @@ def test_per_view_ray_batches_take_each_view_once_per_epoch(scene):
     for _epoch in range(2):
         seen = []
         for _ in range(views):
-            frames = (trainer.draw() // bank.hw).unique().tolist()
+            frames = (trainer.draw()[0] // bank.hw).unique().tolist()
             assert len(frames) == 1
             seen.append(frames[0])
         assert sorted(seen) == list(range(views))
     cfg.optim.ray_batches = "all"
-    spread = NerfTrainer(nerf, bank, schedule_steps=10, rays_per_step=256).draw() // bank.hw
+    spread = NerfTrainer(nerf, bank, schedule_steps=10, rays_per_step=256).draw()[0] // bank.hw
     assert len(spread.unique()) > 1
     with pytest.raises(IndexError, match="frame"):
         bank.random_ids(4, frame=views)
+
+
+def _label_bank(labels: np.ndarray) -> RayBank:
+    """A bank of one 20x16 view of a scene (geometry irrelevant) with the given labels."""
+    sc = synthetic_scene(frames=1, size=(20, 16))
+    bank = RayBank(sc.train_frames[:1], sc.intrinsics)
+    bank.set_labels({sc.train_frames[0].name: labels.reshape(16, 20)})
+    return bank
+
+
+def test_balanced_draws_favour_rare_labels_and_weigh_them_back():
+    """``RayBank.balanced_ids``: a label on 0.9% of the pixels is drawn over 4x as often,
+    no label less than half its share, every drawn pixel carries its label's ``p / q``, and
+    the weighted label frequencies are the uniform ones (so every loss keeps its optimum)."""
+    labels = np.full(320, 1, np.uint8)
+    labels[:32] = 2  # 10% of the pixels
+    labels[32:35] = 3  # about 1%
+    bank = _label_bank(labels)
+    gen = torch.Generator().manual_seed(0)
+    ids, w = bank.balanced_ids(200_000, gen)
+    drawn = bank.labels[ids].long()
+    share = torch.bincount(drawn, minlength=4).double() / len(ids)
+    assert share[3] > 0.035 and share[1] > 0.45  # rare: >3.5x its 0.9%; common: >= half
+    truth = torch.tensor([0, 285, 32, 3], dtype=torch.float64) / 320
+    expected_q = 0.5 * truth + 0.5 * truth.sqrt() / truth.sqrt().sum()
+    torch.testing.assert_close(share, expected_q, atol=5e-3, rtol=0)
+    for c in (1, 2, 3):
+        torch.testing.assert_close(
+            w[drawn == c], torch.full_like(w[drawn == c], float(truth[c] / expected_q[c]))
+        )
+    weighted = torch.bincount(drawn, weights=w.double(), minlength=4) / w.double().sum()
+    torch.testing.assert_close(weighted, truth, atol=5e-3, rtol=0)
+    assert set(ids.tolist()) == set(range(320))  # every pixel of every label can be drawn
+    with pytest.raises(ValueError, match="labels"):
+        RayBank(bank.frames, synthetic_scene(frames=1, size=(20, 16)).intrinsics).balanced_ids(4)
+
+
+def test_weighted_losses_are_the_means_under_uniform_draws():
+    """A batch with ``ray_weight``: each loss term is the weighted mean over its rays, and
+    unit weights give the unweighted loss exactly."""
+    from csa_core.nerf.losses import color_loss, depth_loss, semantic_loss
+
+    gen = torch.Generator().manual_seed(3)
+    pred, target = torch.rand(6, 3, generator=gen), torch.rand(6, 3, generator=gen)
+    depth_pred = torch.rand(6, generator=gen)
+    depth = torch.tensor([1.0, 0.0, 2.0, 1.5, 0.0, 0.7])
+    probs = torch.softmax(torch.randn(6, 40, generator=gen), -1)
+    labels = torch.tensor([1, 0, 5, 5, 40, 2])
+    ones = torch.ones(6)
+    assert color_loss(pred, target, ones) == pytest.approx(float(color_loss(pred, target)))
+    assert depth_loss(depth_pred, depth, ones) == pytest.approx(float(depth_loss(depth_pred, depth)))
+    assert semantic_loss(probs, labels, ones) == pytest.approx(float(semantic_loss(probs, labels)))
+    # weight 2 on a ray counts it twice: the same as the batch with that ray repeated
+    w = torch.tensor([2.0, 1.0, 1.0, 1.0, 1.0, 1.0])
+    rep = torch.tensor([0, 0, 1, 2, 3, 4, 5])
+    assert color_loss(pred, target, w) == pytest.approx(float(color_loss(pred[rep], target[rep])))
+    assert depth_loss(depth_pred, depth, w) == pytest.approx(
+        float(depth_loss(depth_pred[rep], depth[rep]))
+    )
+    assert semantic_loss(probs, labels, w) == pytest.approx(
+        float(semantic_loss(probs[rep], labels[rep]))
+    )
+
+
+def test_class_balanced_ray_batches_train_with_weights(scene):
+    """``optim.ray_batches="class_balanced"``: the trainer draws label-stratified rays with
+    their weights, and training fits the labels; a bank without labels draws uniformly."""
+    cfg = tiny_config(steps=0)
+    cfg.optim.ray_batches = "class_balanced"
+    nerf = fit_semantic_nerf(scene, None, cfg, progress=False)[0]
+    assert nerf.config.optim.ray_batches == "class_balanced"
+    bank = RayBank(scene.train_frames, scene.intrinsics, label_folder="label-nyu40")
+    trainer = NerfTrainer(nerf, bank, schedule_steps=30, rays_per_step=256, seed=2)
+    ids, w = trainer.draw()
+    assert w is not None and w.shape == ids.shape and bool((w > 0).all())
+    first = trainer.step()["semantic"].item()
+    last = trainer.train(30)["semantic"]  # (the total rises as the free-space term ramps in)
+    assert last < 0.5 * first
+    plain = NerfTrainer(nerf, RayBank(scene.train_frames, scene.intrinsics), schedule_steps=1)
+    assert plain.draw()[1] is None
+    nerf.config.optim.ray_batches = "sometimes"
+    with pytest.raises(ValueError, match="ray_batches"):
+        NerfTrainer(nerf, bank, schedule_steps=1)
 
 
 def test_the_cpu_preset_fits_and_joint_trains_its_nerf_at_a_fixed_rate(scene):
