@@ -78,6 +78,7 @@ class RayBank:
         self.has_depth = bool((self.depth > 0).any())
         self.frame_rows = frame_rows
         self.labels: Tensor | None = None
+        self._balanced: tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None = None
         if label_folder is not None:
             self.set_labels({f.name: f.labels[label_folder] for f in self.frames})
 
@@ -96,11 +97,11 @@ class RayBank:
                 f"labels are {stack.shape[2]}x{stack.shape[1]}, frames have {self.hw} pixels"
             )
         self.labels = torch.as_tensor(stack.reshape(-1), device=self.device)
-        self._balanced: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
+        self._balanced = None
 
-    def _class_strata(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Pixel ids sorted by label, and per label id (0..255): first position, count, and
-        the share of draws ``RayBank.balanced_ids`` gives it."""
+    def _class_strata(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Pixel ids sorted by label, and per label id (0..255): first position, count, the
+        share of draws ``RayBank.balanced_ids`` gives it and the weight of a drawn pixel."""
         if self._balanced is None:
             assert self.labels is not None
             labels = self.labels.long()
@@ -110,7 +111,8 @@ class RayBank:
             share = counts.double() / counts.sum()
             root = counts.double().sqrt()
             draw = 0.5 * share + 0.5 * root / root.sum()
-            self._balanced = (order, starts, counts, draw)
+            weight = (share / draw).float()  # NaN only for labels never drawn (q = 0)
+            self._balanced = (order, starts, counts, draw, weight)
         return self._balanced
 
     def balanced_ids(
@@ -124,14 +126,11 @@ class RayBank:
         so its optimum), with less variance on the rare labels."""
         if self.labels is None:
             raise ValueError("balanced ray draws need labels (RayBank.set_labels)")
-        order, starts, counts, draw = self._class_strata()
+        order, starts, counts, draw, weight = self._class_strata()
         cls = torch.multinomial(draw.float(), n, replacement=True, generator=generator)
         u = torch.rand(n, device=self.device, generator=generator, dtype=torch.float64)
         offset = (u * counts[cls].double()).long().clamp_max(counts[cls] - 1)
-        ids = order[starts[cls] + offset]
-        share = counts.double() / counts.sum()
-        weight = (share[cls] / draw[cls]).float()
-        return ids, weight
+        return order[starts[cls] + offset], weight[cls]
 
     def random_ids(
         self, n: int, generator: torch.Generator | None = None, frame: int | None = None
