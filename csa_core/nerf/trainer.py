@@ -145,8 +145,9 @@ class NerfTrainer:
         self, steps: int, lr: float | None = None, rays_per_step: int | None = None
     ) -> float:
         """``steps`` Adam steps on the semantic head alone (fresh Adam, constant ``lr``, default
-        the config's), samples placed like rendered labels' (``SemanticNerf.render_sampler``);
-        returns the last loss."""
+        the config's), samples placed like rendered labels' (``SemanticNerf.render_sampler``),
+        rays drawn uniformly from every view or, with ``optim.ray_batches="class_balanced"``,
+        label-stratified with their weights as in :meth:`step`; returns the last loss."""
         if self.rays.labels is None:
             raise ValueError("semantic steps need labels (RayBank.set_labels)")
         nerf, gen = self.nerf, self.generator
@@ -156,7 +157,10 @@ class NerfTrainer:
         n = rays_per_step or self.rays_per_step
         value = float("nan")
         for _ in range(steps):
-            ids = self.rays.random_ids(n, gen)
+            if self.balanced:
+                ids, ray_weight = self.rays.balanced_ids(n, gen)
+            else:
+                ids, ray_weight = self.rays.random_ids(n, gen), None
             origins, dirs = self.rays.rays(ids)
             with torch.no_grad():
                 samples = nerf.sample(
@@ -168,7 +172,7 @@ class NerfTrainer:
                     generator=gen,
                 )
             probs = nerf.render_semantics(origins, dirs, samples)
-            loss = semantic_loss(probs, self.rays.labels[ids])
+            loss = semantic_loss(probs, self.rays.labels[ids], ray_weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -280,6 +282,17 @@ def test_class_balanced_ray_batches_train_with_weights(scene):
     first = trainer.step()["semantic"].item()
     last = trainer.train(30)["semantic"]  # (the total rises as the free-space term ramps in)
     assert last < 0.5 * first
+    # The semantic-head steps (the fit's and the joint rounds') draw the same way.
+    calls = []
+    balanced_ids = bank.balanced_ids
+
+    def spy(n, gen):
+        calls.append(n)
+        return balanced_ids(n, gen)
+
+    bank.balanced_ids = spy
+    loss = trainer.semantic_steps(4, rays_per_step=128)
+    assert calls == [128] * 4 and math.isfinite(loss)
     plain = NerfTrainer(nerf, RayBank(scene.train_frames, scene.intrinsics), schedule_steps=1)
     assert plain.draw()[1] is None
     nerf.config.optim.ray_batches = "sometimes"
