@@ -87,16 +87,21 @@ class NerfTrainer:
         """The next step's pixel ids and their importance weights (None: uniform): from every
         view, from the next view of this epoch's random order (``optim.ray_batches="per_view"``),
         or label-stratified with weights (``"class_balanced"``, ``RayBank.balanced_ids``)."""
-        if self.balanced:
-            return self.rays.balanced_ids(self.rays_per_step, self.generator)
         if not self.per_view:
-            return self.rays.random_ids(self.rays_per_step, self.generator), None
+            return self._draw_from_all(self.rays_per_step)
         if not self._view_order:
             n = len(self.rays.frames)
             order = torch.randperm(n, generator=self.generator, device=self.generator.device)
             self._view_order = order.tolist()[::-1]
         ids = self.rays.random_ids(self.rays_per_step, self.generator, self._view_order.pop())
         return ids, None
+
+    def _draw_from_all(self, n: int) -> tuple[Tensor, Tensor | None]:
+        """``n`` pixel ids from every view: label-stratified with their weights when the
+        draws are balanced, else uniform (weights None)."""
+        if self.balanced:
+            return self.rays.balanced_ids(n, self.generator)
+        return self.rays.random_ids(n, self.generator), None
 
     def step(self) -> dict[str, Tensor]:
         """One Adam step on a fresh ray batch; returns the loss terms (tensors)."""
@@ -157,10 +162,7 @@ class NerfTrainer:
         n = rays_per_step or self.rays_per_step
         value = float("nan")
         for _ in range(steps):
-            if self.balanced:
-                ids, ray_weight = self.rays.balanced_ids(n, gen)
-            else:
-                ids, ray_weight = self.rays.random_ids(n, gen), None
+            ids, ray_weight = self._draw_from_all(n)
             origins, dirs = self.rays.rays(ids)
             with torch.no_grad():
                 samples = nerf.sample(
