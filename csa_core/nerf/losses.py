@@ -44,6 +44,17 @@ def semantic_loss(probs: Tensor, labels: Tensor, ray_weight: Tensor | None = Non
     return _mean(-torch.log(p.clamp_min(_LOG_EPS)), w)
 
 
+NEAR_DEPTH = 0.3  # metres: ``near_view_weight`` stops growing below this depth
+
+
+def near_view_weight(depth: Tensor, power: float, reference: float) -> Tensor:
+    """Per-ray weight ``(reference / z) ** power`` of the semantic loss, ``z`` the measured depth
+    (at least ``NEAR_DEPTH``); rays without depth (0) weigh 1 (``LossConfig.semantic_depth_power``)."""
+    z = depth.clamp_min(NEAR_DEPTH)
+    w = (reference / z) ** power
+    return torch.where(depth > 0, w, torch.ones_like(w))
+
+
 def free_space_loss(
     weights: Tensor, in_front: Tensor, samples: RaySamples, ray_weight: Tensor | None = None
 ) -> Tensor:
@@ -63,7 +74,8 @@ def total_loss(
     out: dict[str, Tensor], batch: dict[str, Tensor], cfg: LossConfig
 ) -> dict[str, Tensor]:
     """Weighted sum of the three losses; returns every term and ``loss``. A batch with
-    ``ray_weight`` (R,) averages every term over rays with those weights."""
+    ``ray_weight`` (R,) averages every term over rays with those weights; ``semantic_weight``
+    (R,) weighs the semantic term's rays on top of them."""
     rw = batch.get("ray_weight")
     terms = {"color": color_loss(out["rgb"], batch["rgb"], rw)}
     total = cfg.color * terms["color"]
@@ -71,7 +83,12 @@ def total_loss(
         terms["depth"] = depth_loss(out["depth"], batch["depth"], rw)
         total = total + cfg.depth * terms["depth"]
     if cfg.semantic > 0 and "labels" in batch and "semantics" in out:
-        terms["semantic"] = semantic_loss(out["semantics"], batch["labels"], rw)
+        sw = batch.get("semantic_weight")
+        if sw is not None:
+            sw = sw if rw is None else sw * rw
+        terms["semantic"] = semantic_loss(
+            out["semantics"], batch["labels"], rw if sw is None else sw
+        )
         total = total + cfg.semantic * terms["semantic"]
     if cfg.free_space > 0 and "free_space" in out:
         terms["free_space"] = out["free_space"]

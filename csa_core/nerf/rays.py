@@ -15,6 +15,7 @@ from torch import Tensor
 
 from csa_core.data.camera import Intrinsics
 from csa_core.data.scene import Frame
+from csa_core.nerf.losses import near_view_weight
 
 
 def camera_directions(intr: Intrinsics, device: torch.device | str = "cpu") -> Tensor:
@@ -76,6 +77,7 @@ class RayBank:
             np.stack([frame_depth(f) for f in self.frames]).reshape(-1), device=device
         )
         self.has_depth = bool((self.depth > 0).any())
+        self._median_depth: float | None = None
         self.frame_rows = frame_rows
         self.labels: Tensor | None = None
         self._balanced: tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None = None
@@ -143,6 +145,16 @@ class RayBank:
             raise IndexError(f"frame {frame} of a bank of {len(self.frames)} frames")
         pix = torch.randint(0, self.hw, (n,), device=self.device, generator=generator)
         return pix + frame * self.hw
+
+    def near_weights(self, ids: Tensor, power: float) -> Tensor | None:
+        """Semantic-loss weights of pixels ``ids`` favouring near views
+        (``losses.near_view_weight`` relative to the bank's median measured depth), or None
+        when ``power`` is 0 or the bank has no depth."""
+        if power == 0 or not self.has_depth:
+            return None
+        if self._median_depth is None:
+            self._median_depth = float(self.depth[self.depth > 0].median())
+        return near_view_weight(self.depth[ids], power, self._median_depth)
 
     def rays(self, ids: Tensor) -> tuple[Tensor, Tensor]:
         """World origins and unit-z directions (N, 3) of pixels ``ids``."""

@@ -75,6 +75,10 @@ class NerfTrainer:
         self.per_view = o.ray_batches == "per_view"
         # Label-stratified draws need labels; a bank without them draws uniformly.
         self.balanced = o.ray_batches == "class_balanced" and rays.labels is not None
+        power = nerf.config.loss.semantic_depth_power
+        if not (math.isfinite(power) and power >= 0):
+            raise ValueError(f"loss.semantic_depth_power must be finite and >= 0, got {power}")
+        self.near_power = power
         self._view_order: list[int] = []
         self.steps_done = 0
         self.samples_seen = 0
@@ -110,6 +114,9 @@ class NerfTrainer:
         origins, dirs, target = self.rays.batch(ids)
         if ray_weight is not None:
             target["ray_weight"] = ray_weight
+        near = self.rays.near_weights(ids, self.near_power)
+        if near is not None:
+            target["semantic_weight"] = near
         self.sampler.update_every_n_steps(self.steps_done, nerf.density_fn, gen)
         samples = nerf.sample(
             origins, dirs, self.sampler, depth=target["depth"], stratified=True, generator=gen
@@ -152,7 +159,8 @@ class NerfTrainer:
         """``steps`` Adam steps on the semantic head alone (fresh Adam, constant ``lr``, default
         the config's), samples placed like rendered labels' (``SemanticNerf.render_sampler``),
         rays drawn uniformly from every view or, with ``optim.ray_batches="class_balanced"``,
-        label-stratified with their weights as in :meth:`step`; returns the last loss."""
+        label-stratified with their weights as in :meth:`step`, and weighted towards near views
+        with ``loss.semantic_depth_power``; returns the last loss."""
         if self.rays.labels is None:
             raise ValueError("semantic steps need labels (RayBank.set_labels)")
         nerf, gen = self.nerf, self.generator
@@ -174,6 +182,9 @@ class NerfTrainer:
                     generator=gen,
                 )
             probs = nerf.render_semantics(origins, dirs, samples)
+            near = self.rays.near_weights(ids, self.near_power)
+            if near is not None:
+                ray_weight = near if ray_weight is None else near * ray_weight
             loss = semantic_loss(probs, self.rays.labels[ids], ray_weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -254,7 +254,9 @@ def test_weighted_losses_are_the_means_under_uniform_draws():
     labels = torch.tensor([1, 0, 5, 5, 40, 2])
     ones = torch.ones(6)
     assert color_loss(pred, target, ones) == pytest.approx(float(color_loss(pred, target)))
-    assert depth_loss(depth_pred, depth, ones) == pytest.approx(float(depth_loss(depth_pred, depth)))
+    assert depth_loss(depth_pred, depth, ones) == pytest.approx(
+        float(depth_loss(depth_pred, depth))
+    )
     assert semantic_loss(probs, labels, ones) == pytest.approx(float(semantic_loss(probs, labels)))
     # weight 2 on a ray counts it twice: the same as the batch with that ray repeated
     w = torch.tensor([2.0, 1.0, 1.0, 1.0, 1.0, 1.0])
@@ -318,3 +320,68 @@ def test_the_cpu_preset_fits_and_joint_trains_its_nerf_at_a_fixed_rate(scene):
     assert [g["lr"] for g in fit.optimizer.param_groups] == pytest.approx([optim.lr] * 2)
     joint = NerfLabelTrainer(nerf, scene, rays_per_step=64)
     assert [g["lr"] for g in joint.trainer.optimizer.param_groups] == pytest.approx([optim.lr] * 2)
+
+
+def test_near_view_weights_weigh_the_semantic_term_of_close_rays_only(scene, monkeypatch):
+    """``loss.semantic_depth_power``: a ray's semantic loss weighs (median depth / z)^p (z
+    clamped at 0.3 m, rays without depth weigh 1); colour and depth stay unweighted, and both
+    the fit's steps and the semantic-head steps use the weights."""
+    from csa_core.nerf.config import LossConfig
+    from csa_core.nerf.losses import color_loss, near_view_weight, semantic_loss, total_loss
+
+    depth = torch.tensor([0.0, 0.1, 1.0, 2.0])
+    torch.testing.assert_close(
+        near_view_weight(depth, 2.0, 1.0), torch.tensor([1.0, 1 / 0.09, 1.0, 0.25])
+    )
+    gen = torch.Generator().manual_seed(1)
+    out = {"rgb": torch.rand(4, 3, generator=gen), "depth": depth + 0.1}
+    out["semantics"] = torch.softmax(torch.randn(4, 40, generator=gen), -1)
+    batch = {
+        "rgb": torch.rand(4, 3, generator=gen),
+        "depth": depth,
+        "labels": torch.tensor([1, 2, 3, 4]),
+    }
+    batch["semantic_weight"] = near_view_weight(depth, 2.0, 1.0)
+    terms = total_loss(out, batch, LossConfig())
+    assert terms["semantic"] == pytest.approx(
+        float(semantic_loss(out["semantics"], batch["labels"], batch["semantic_weight"]))
+    )
+    assert terms["semantic"] != pytest.approx(
+        float(semantic_loss(out["semantics"], batch["labels"]))
+    )
+    assert terms["color"] == pytest.approx(float(color_loss(out["rgb"], batch["rgb"])))
+
+    bank = RayBank(scene.train_frames, scene.intrinsics, label_folder="label-nyu40")
+    ids = torch.arange(0, bank.count, 7)
+    assert bank.near_weights(ids, 0.0) is None
+    median = float(bank.depth[bank.depth > 0].median())
+    torch.testing.assert_close(
+        bank.near_weights(ids, 2.0), near_view_weight(bank.depth[ids], 2.0, median)
+    )
+
+    cfg = tiny_config(steps=0)
+    cfg.loss.semantic_depth_power = 2.0
+    nerf = fit_semantic_nerf(scene, None, cfg, progress=False)[0]
+    trainer = NerfTrainer(nerf, bank, schedule_steps=2, rays_per_step=64, seed=0)
+    seen = []
+    losses = nerf.losses
+
+    def spy_losses(out, target, samples, scale=1.0):
+        seen.append(target.get("semantic_weight"))
+        return losses(out, target, samples, scale)
+
+    monkeypatch.setattr(nerf, "losses", spy_losses)
+    trainer.step()
+    assert seen[0] is not None and seen[0].shape == (64,)
+    weights = []
+
+    def spy_semantic(probs, labels, ray_weight=None):
+        weights.append(ray_weight)
+        return semantic_loss(probs, labels, ray_weight)
+
+    monkeypatch.setattr("csa_core.nerf.trainer.semantic_loss", spy_semantic)
+    trainer.semantic_steps(2, rays_per_step=32)
+    assert len(weights) == 2 and all(w is not None and w.shape == (32,) for w in weights)
+    nerf.config.loss.semantic_depth_power = -1.0
+    with pytest.raises(ValueError, match="semantic_depth_power"):
+        NerfTrainer(nerf, bank, schedule_steps=1)
