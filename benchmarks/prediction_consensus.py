@@ -4,8 +4,9 @@ A fuser of per-frame labels (the map, the NeRF) can only remove the errors the v
 on. This measures, on a network's real predictions of a labelled scene, how much of the
 network's error is of that kind, and what fusing gives under a few voting rules, all with the
 same geometry: every training pixel's surface point (at its measured depth: exact on a
-synthetic scene, noisy and with holes on its hard variant) falls in a 5 cm voxel, each voxel sums what the training views predicted there, and every pixel (training or
-held-out) reads back the voxel its own depth falls in (the map's "depth read-back"; a held-out
+synthetic scene, noisy and with holes on its hard variant) falls in a 5 cm voxel, each voxel
+sums what the training views predicted there, and every pixel (training or held-out) reads
+back the voxel its own depth falls in (the map's "depth read-back"; a held-out
 pixel in a voxel no training view saw keeps the network's prediction).
 
     python benchmarks/prediction_consensus.py --model runs/demo/pretrained.safetensors \\
@@ -41,27 +42,24 @@ import numpy as np
 import torch
 from fusion_bench import miou, open_scene
 
-from csa_core.adapt.baselines.voxel_map import PAPER_VOXEL_SIZE
+from csa_core.adapt.baselines.voxel_map import PAPER_VOXEL_SIZE, pack_keys, voxel_coords
 from csa_core.data.camera import backproject
 from csa_core.data.nyu40 import NUM_CLASSES
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.data.synth import degrade_scene, parse_size
+from csa_core.nerf.losses import NEAR_DEPTH
 from csa_core.seg.adabn import adapt_batchnorm
 from csa_core.seg.checkpoint import load_checkpoint
 from csa_core.seg.predict import predict_logits
 
-NEAR_CLAMP = 0.3  # metres: the near vote's weight 1 / z^2 stops growing below this depth
-
 
 def voxel_keys(scene: Scene, frame, voxel: float) -> np.ndarray:
     """One int64 key per pixel of ``frame`` for the voxel its depth point falls in (-1: no
-    depth)."""
+    depth), packed as the voxel map packs its cells."""
     pts = backproject(frame.depth, scene.intrinsics, frame.pose).reshape(-1, 3)
     ok = np.isfinite(pts).all(1)
-    cell = np.zeros((len(pts), 3), np.int64)
-    cell[ok] = np.floor(pts[ok] / voxel).astype(np.int64) + (1 << 20)
-    keys = (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
-    keys[~ok] = -1
+    keys = np.full(len(pts), -1, np.int64)
+    keys[ok] = pack_keys(voxel_coords(pts[ok], voxel))
     return keys
 
 
@@ -94,18 +92,19 @@ def fuse(scene: Scene, model, size, voxel: float, batch: int = 16) -> dict[str, 
         hot = torch.nn.functional.one_hot(arg, c).double()
         votes.index_add_(0, idx, hot)
         conf.index_add_(0, idx, hot * top[:, None])
-        z = torch.as_tensor(depth[name][ok]).double().clamp_min(NEAR_CLAMP)
+        z = torch.as_tensor(depth[name][ok]).double().clamp_min(NEAR_DEPTH)
         near.index_add_(0, idx, hot / z[:, None] ** 2)
         soft.index_add_(0, idx, p)
         logp.index_add_(0, idx, p.clamp_min(1e-6).log())
     rules = {
         "network": None,
-        "vote": votes.argmax(1),
-        "confident vote": conf.argmax(1),
-        "near vote": near.argmax(1),
-        "mean prob": soft.argmax(1),
-        "log prob": logp.argmax(1),
+        "vote": votes.argmax(1).numpy(),
+        "confident vote": conf.argmax(1).numpy(),
+        "near vote": near.argmax(1).numpy(),
+        "mean prob": soft.argmax(1).numpy(),
+        "log prob": logp.argmax(1).numpy(),
     }
+    has_label = votes.numpy() > 0
     out: dict[str, dict] = {r: {} for r in [*rules, "oracle"]}
     fixable = shared = wrong = 0
     for f in frames:
@@ -114,20 +113,22 @@ def fuse(scene: Scene, model, size, voxel: float, batch: int = 16) -> dict[str, 
         pos = np.searchsorted(table, k).clip(0, max(v - 1, 0))
         seen = (k >= 0) & (table[pos] == k) if v else np.zeros_like(k, bool)
         gt = f.labels[NYU40_FOLDER].reshape(-1).astype(np.int64)
+        fused = {}
         for rule, best in rules.items():
             lab = own.copy()
             if best is not None:
-                lab[seen] = best.numpy()[pos[seen]]
-            out[rule][f.name] = (lab + 1).astype(np.uint8).reshape(f.depth.shape)
-        vote = own.copy()
-        vote[seen] = rules["vote"].numpy()[pos[seen]]
+                lab[seen] = best[pos[seen]]
+            fused[rule] = lab
+        vote = fused["vote"]
         oracle = vote.copy()
         cls = gt - 1
         known = seen & (gt > 0)
         hit = np.zeros_like(known)
-        hit[known] = votes.numpy()[pos[known], cls[known]] > 0
+        hit[known] = has_label[pos[known], cls[known]]
         oracle[hit] = cls[hit]
-        out["oracle"][f.name] = (oracle + 1).astype(np.uint8).reshape(f.depth.shape)
+        fused["oracle"] = oracle
+        for rule, lab in fused.items():
+            out[rule][f.name] = (lab + 1).astype(np.uint8).reshape(f.depth.shape)
         if f.name in train:
             bad = known & (own != cls)
             wrong += int(bad.sum())

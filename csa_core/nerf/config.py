@@ -135,9 +135,9 @@ class LossConfig:
         0.2  # fraction of the steps before the free-space loss starts (ramped in over as many)
     )
     # Ours (0 = paper): each ray's semantic loss weighs (d / z)^p, z its measured depth (at
-    # least 0.3 m; rays without depth weigh 1) and d the rays' median depth: views that see a
-    # surface from close by get more say in its fused label (benchmarks/RESULTS.md, "Near
-    # views' votes").
+    # least 0.3 m; rays without depth weigh 1) and d the training views' median measured
+    # depth: views that see a surface from close by get more say in its fused label. In no
+    # preset (docs/deviations.md, "Near views' labels weighted up").
     semantic_depth_power: float = 0.0
 
 

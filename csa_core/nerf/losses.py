@@ -75,7 +75,7 @@ def total_loss(
 ) -> dict[str, Tensor]:
     """Weighted sum of the three losses; returns every term and ``loss``. A batch with
     ``ray_weight`` (R,) averages every term over rays with those weights; ``semantic_weight``
-    (R,) weighs the semantic term's rays on top of them."""
+    (R,) takes its place for the semantic term (``NerfTrainer.semantic_weights``)."""
     rw = batch.get("ray_weight")
     terms = {"color": color_loss(out["rgb"], batch["rgb"], rw)}
     total = cfg.color * terms["color"]
@@ -83,12 +83,8 @@ def total_loss(
         terms["depth"] = depth_loss(out["depth"], batch["depth"], rw)
         total = total + cfg.depth * terms["depth"]
     if cfg.semantic > 0 and "labels" in batch and "semantics" in out:
-        sw = batch.get("semantic_weight")
-        if sw is not None:
-            sw = sw if rw is None else sw * rw
-        terms["semantic"] = semantic_loss(
-            out["semantics"], batch["labels"], rw if sw is None else sw
-        )
+        sw = batch.get("semantic_weight", rw)
+        terms["semantic"] = semantic_loss(out["semantics"], batch["labels"], sw)
         total = total + cfg.semantic * terms["semantic"]
     if cfg.free_space > 0 and "free_space" in out:
         terms["free_space"] = out["free_space"]

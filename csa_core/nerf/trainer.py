@@ -107,6 +107,15 @@ class NerfTrainer:
             return self.rays.balanced_ids(n, self.generator)
         return self.rays.random_ids(n, self.generator), None
 
+    def semantic_weights(self, ids: Tensor, ray_weight: Tensor | None) -> Tensor | None:
+        """Weights of the semantic loss of pixels ``ids``: their draw's ``ray_weight`` times,
+        with ``loss.semantic_depth_power``, the near-view weights (``RayBank.near_weights``);
+        ``ray_weight`` itself otherwise."""
+        near = self.rays.near_weights(ids, self.near_power)
+        if near is None:
+            return ray_weight
+        return near if ray_weight is None else near * ray_weight
+
     def step(self) -> dict[str, Tensor]:
         """One Adam step on a fresh ray batch; returns the loss terms (tensors)."""
         nerf, gen = self.nerf, self.generator
@@ -114,9 +123,9 @@ class NerfTrainer:
         origins, dirs, target = self.rays.batch(ids)
         if ray_weight is not None:
             target["ray_weight"] = ray_weight
-        near = self.rays.near_weights(ids, self.near_power)
-        if near is not None:
-            target["semantic_weight"] = near
+        semantic_weight = self.semantic_weights(ids, ray_weight)
+        if semantic_weight is not None:
+            target["semantic_weight"] = semantic_weight
         self.sampler.update_every_n_steps(self.steps_done, nerf.density_fn, gen)
         samples = nerf.sample(
             origins, dirs, self.sampler, depth=target["depth"], stratified=True, generator=gen
@@ -182,10 +191,8 @@ class NerfTrainer:
                     generator=gen,
                 )
             probs = nerf.render_semantics(origins, dirs, samples)
-            near = self.rays.near_weights(ids, self.near_power)
-            if near is not None:
-                ray_weight = near if ray_weight is None else near * ray_weight
-            loss = semantic_loss(probs, self.rays.labels[ids], ray_weight)
+            weight = self.semantic_weights(ids, ray_weight)
+            loss = semantic_loss(probs, self.rays.labels[ids], weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
