@@ -137,7 +137,7 @@ class LossConfig:
     # Ours (0 = paper): each ray's semantic loss weighs (d / z)^p, z its measured depth (at
     # least 0.3 m; rays without depth weigh 1) and d the training views' median measured
     # depth: views that see a surface from close by get more say in its fused label. In no
-    # preset (docs/deviations.md, "Near views' labels weighted up").
+    # preset: its measured effect is in docs/deviations.md, the row on near views' labels.
     semantic_depth_power: float = 0.0
 
 
