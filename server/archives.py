@@ -2,17 +2,20 @@
 
 Only regular files and folders are extracted. Refused: absolute paths, ``..`` components,
 symbolic and hard links, devices and FIFOs, more than ``max_members`` entries, a member larger
-than ``max_member_bytes``, more than ``max_total_bytes`` in all, and zip members whose
-compression ratio exceeds ``max_ratio`` (archive bombs). Sizes are counted while copying,
+than ``max_member_bytes``, more than ``max_total_bytes`` in all, zip members whose
+compression ratio exceeds ``max_ratio`` (archive bombs), one path named twice or as both a
+file and a folder, and encrypted or corrupt members (errors never carry the server's paths). Sizes are counted while copying,
 so a header that lies about a size gains nothing.
 """
 
 from __future__ import annotations
 
+import lzma
 import shutil
 import stat
 import tarfile
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import IO
@@ -46,15 +49,36 @@ def _safe_relpath(name: str) -> PurePosixPath | None:
 
 
 class _Budget:
+    """Counts entries and bytes, and keeps the paths seen so far: an archive that names one
+    path twice, or a file and a folder at one path, is ambiguous (tools disagree on which entry
+    wins) and is refused rather than extracted over itself."""
+
     def __init__(self, limits: ArchiveLimits):
         self.limits = limits
         self.members = 0
         self.total = 0
+        self.files: set[PurePosixPath] = set()
+        self.folders: set[PurePosixPath] = set()
 
     def member(self, name: str) -> None:
         self.members += 1
         if self.members > self.limits.max_members:
             raise UnsafeArchive(f"more than {self.limits.max_members} entries")
+
+    def claim(self, name: str, rel: PurePosixPath, is_dir: bool) -> None:
+        """Record an entry's path; refuse a duplicate file or a file/folder clash."""
+        for parent in rel.parents:
+            if parent in self.files:
+                raise UnsafeArchive(f"{name!r}: {str(parent)!r} is a file in this archive, not a folder")
+        if rel in self.files:
+            raise UnsafeArchive(f"{name!r}: the archive holds this path twice")
+        if is_dir:
+            self.folders.add(rel)
+            return
+        if rel in self.folders:
+            raise UnsafeArchive(f"{name!r}: the archive holds this path as a folder and as a file")
+        self.files.add(rel)
+        self.folders.update(p for p in rel.parents if p != PurePosixPath("."))
 
     def copy(self, src: IO[bytes], dest: Path, name: str) -> None:
         written = 0
@@ -67,6 +91,11 @@ class _Budget:
                 if self.total > self.limits.max_total_bytes:
                     raise UnsafeArchive(f"unpacks to more than {self.limits.max_total_bytes} bytes")
                 out.write(chunk)
+
+
+def _os_problem(e: OSError) -> str:
+    """An OS error without the file names it carries (they are paths of the server)."""
+    return e.strerror or type(e).__name__
 
 
 def _target(root: Path, rel: PurePosixPath) -> Path:
@@ -89,6 +118,7 @@ def _extract_tar(path: Path, root: Path, limits: ArchiveLimits) -> None:
                     raise UnsafeArchive(f"{m.name!r}: only regular files and folders are allowed")
                 if rel is None:
                     continue
+                budget.claim(m.name, rel, m.isdir())
                 dest = _target(root, rel)
                 if m.isdir():
                     dest.mkdir(parents=True, exist_ok=True)
@@ -101,8 +131,10 @@ def _extract_tar(path: Path, root: Path, limits: ArchiveLimits) -> None:
                     raise UnsafeArchive(f"{m.name!r}: cannot be read")
                 with src:
                     budget.copy(src, dest, m.name)
-    except (tarfile.TarError, EOFError, OSError) as e:
+    except (tarfile.TarError, EOFError, zlib.error, lzma.LZMAError) as e:
         raise UnsafeArchive(f"not a readable tar archive ({e})") from None
+    except OSError as e:  # the message, never the server's path
+        raise UnsafeArchive(f"not a readable tar archive ({_os_problem(e)})") from None
 
 
 def _extract_zip(path: Path, root: Path, limits: ArchiveLimits) -> None:
@@ -132,6 +164,7 @@ def _extract_zip(path: Path, root: Path, limits: ArchiveLimits) -> None:
                 rel = _safe_relpath(info.filename)
                 if rel is None:
                     continue
+                budget.claim(info.filename, rel, info.is_dir())
                 dest = _target(root, rel)
                 if info.is_dir():
                     dest.mkdir(parents=True, exist_ok=True)
@@ -139,8 +172,12 @@ def _extract_zip(path: Path, root: Path, limits: ArchiveLimits) -> None:
                 dest.parent.mkdir(parents=True, exist_ok=True)
                 with zf.open(info) as src:
                     budget.copy(src, dest, info.filename)
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, NotImplementedError) as e:
+    except UnsafeArchive:
+        raise
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError, RuntimeError, ValueError, zlib.error, lzma.LZMAError) as e:  # RuntimeError: encrypted
         raise UnsafeArchive(f"not a readable zip archive ({e})") from None
+    except OSError as e:  # the message, never the server's path
+        raise UnsafeArchive(f"not a readable zip archive ({_os_problem(e)})") from None
 
 
 def extract_archive(path: Path, dest: Path, limits: ArchiveLimits) -> Path:

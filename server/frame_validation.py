@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from csa_core.data import image_files
-from csa_core.data.camera import Intrinsics, check_intrinsics, check_pose
+from csa_core.data.camera import Intrinsics, check_pose, intrinsics_from_matrix
 from csa_core.errors import CSAInputError
 from server.db.models import MAX_ID
 from server.errors import APIError, invalid
@@ -121,7 +121,7 @@ def parse_pose(text: str, field: str, tmp: Path) -> np.ndarray:
 def parse_intrinsics(text: str, field: str, size: tuple[int, int], tmp: Path) -> Intrinsics:
     K = _matrix(text, field, ((3, 3), (4, 4)), tmp)
     try:
-        return check_intrinsics(Intrinsics.from_matrix(K, *size), field)
+        return intrinsics_from_matrix(K, *size, field)
     except CSAInputError as e:
         raise invalid(field, e.problem) from None
 
@@ -165,7 +165,11 @@ def validate_frame(parts: FrameParts, scene: SceneCamera, max_pixels: int) -> Va
         raise invalid(parts.field("intrinsics"), "required with the first frame of a scene (3x3 or 4x4 matrix)")
     if scene.depth_size is not None and depth_size != scene.depth_size:
         raise invalid(parts.field("depth"), f"size mismatch: depth is {depth_size[0]}x{depth_size[1]}, this scene's depth images are {scene.depth_size[0]}x{scene.depth_size[1]}")
-    if dintr is None and not _same_aspect(depth_size, color_size):
+    # A scene has one depth camera, fixed by its first frame: its own (depth_intrinsics with
+    # the first frame) or the colour camera scaled to the depth size (none with the first frame).
+    if dintr is not None and scene.intrinsics is not None and scene.depth_intrinsics is None:
+        raise invalid(parts.field("depth_intrinsics"), "this scene's depth is the colour camera (its first frame came without depth intrinsics); a scene has one depth camera, so leave depth_intrinsics out or upload to a new scene")
+    if dintr is None and scene.depth_intrinsics is None and not _same_aspect(depth_size, color_size):
         raise invalid(parts.field("depth"), f"size mismatch: depth is {depth_size[0]}x{depth_size[1]}, colour is {color_size[0]}x{color_size[1]} (aspect ratios differ; send depth_intrinsics for a separate depth camera)")
     if scene.depth_intrinsics is not None and dintr is not None and not same_camera(dintr, scene.depth_intrinsics):
         raise invalid(parts.field("depth_intrinsics"), "differ from this scene's depth intrinsics")

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from server.db.models import MAX_ID, Job, ModelVersion, NerfCheckpoint, Scene
-from server.errors import APIError, not_found
+from server.errors import APIError, invalid, not_found
 
 
 def _as_id(ref: str | int) -> int | None:
@@ -22,6 +24,28 @@ def get_scene(session: Session, ref: str | int) -> Scene:
     scene = session.get(Scene, ident) if ident is not None else session.scalar(select(Scene).where(Scene.name == str(ref)))
     if scene is None:
         raise not_found("scene", ref)
+    return scene
+
+
+def get_scenes(session: Session, refs: Sequence[str | int], field: str) -> list[Scene]:
+    """Scenes by id or name, each once: a scene named twice (by any mix of ids and names) is a
+    422 naming ``field``, since a job would read it twice; 404 for an unknown one."""
+    scenes: list[Scene] = []
+    for ref in refs:
+        scene = get_scene(session, ref)
+        if any(s.id == scene.id for s in scenes):
+            raise invalid(field, f"scene {scene.name!r} is listed twice")
+        scenes.append(scene)
+    return scenes
+
+
+def require_ground_truth(session: Session, scene: Scene, field: str) -> Scene:
+    """``scene`` when every frame has ground-truth labels, else a 422 naming ``field``."""
+    from server.scene_folders import missing_ground_truth
+
+    problem = missing_ground_truth(session, scene)
+    if problem is not None:
+        raise invalid(field, f"scene {scene.name!r} {problem}")
     return scene
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from csa_core.data import image_files
@@ -27,6 +27,18 @@ def _write_intrinsics(path: Path, intr: Intrinsics) -> None:
     image_files.write_matrix(path, K)
 
 
+def missing_ground_truth(session: Session, scene: Scene) -> str | None:
+    """Why ``scene`` cannot be read with ground truth (no frames, or frames without labels), or
+    None: the rule of :func:`write_scene_folder`, checked early by the jobs' ``prepare``."""
+    n, labelled = session.execute(select(func.count(Frame.id), func.count(Frame.labels_sha256)).where(Frame.scene_id == scene.id)).one()
+    if not n:
+        return "has no frames yet"
+    if labelled < n:
+        example = session.scalar(select(Frame.name).where(Frame.scene_id == scene.id, Frame.labels_sha256.is_(None)).order_by(Frame.order_key, Frame.name).limit(1))
+        return f"{n - labelled} of {n} frames have no ground-truth labels (e.g. {example}); this job needs labels on every frame"
+    return None
+
+
 def write_scene_folder(session: Session, store: ArtifactStore, scene: Scene, dest: Path, ground_truth: bool = False) -> Path:
     """Write ``scene`` as a scene folder at ``dest`` (a new folder named after the scene).
 
@@ -37,9 +49,9 @@ def write_scene_folder(session: Session, store: ArtifactStore, scene: Scene, des
     if not frames or scene.intrinsics is None:
         raise CSAInputError(f"scene {scene.name}", "has no frames yet")
     if ground_truth:
-        unlabelled = [f.name for f in frames if not f.labels_sha256]
-        if unlabelled:
-            raise CSAInputError(f"scene {scene.name}", f"{len(unlabelled)} of {len(frames)} frames have no ground-truth labels (e.g. {unlabelled[0]}); this job needs labels on every frame")
+        problem = missing_ground_truth(session, scene)
+        if problem is not None:
+            raise CSAInputError(f"scene {scene.name}", problem)
     root = dest / scene.name
     for sub in ("color", "depth", "pose", "intrinsic"):
         (root / sub).mkdir(parents=True, exist_ok=True)

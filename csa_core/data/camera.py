@@ -135,6 +135,36 @@ def check_intrinsics(intr: Intrinsics, where: str | Path) -> Intrinsics:
     return intr
 
 
+PINHOLE_TOLERANCE = 1.0e-6
+"""Largest deviation of the fixed cells of an intrinsic matrix (the zeros and ones of a pinhole
+matrix) that :func:`intrinsics_from_matrix` accepts; the skew may reach this times 1000 of fx."""
+
+
+def intrinsics_from_matrix(K: np.ndarray, width: int, height: int, where: str | Path) -> Intrinsics:
+    """The checked camera (:func:`check_intrinsics`) of a 3x3 or 4x4 (ScanNet) intrinsic matrix
+    of an image of ``width`` x ``height``, or a :class:`CSAInputError` naming ``where`` when the
+    matrix is not a pinhole matrix: a bottom row other than ``0 0 1``, skew (this camera model has
+    none), or, in a 4x4 matrix, a fourth row or column other than the identity's. Those cells
+    would otherwise be ignored without a word. The one reader of intrinsic matrices for the scene
+    reader and the server."""
+    m = np.asarray(K, dtype=np.float64)
+    if m.shape not in ((3, 3), (4, 4)):
+        raise CSAInputError(where, f"intrinsics must be a 3x3 or 4x4 matrix, got shape {'x'.join(map(str, m.shape))}")
+    intr = check_intrinsics(Intrinsics.from_matrix(m, width, height), where)
+    if not np.all(np.isfinite(m)):
+        raise CSAInputError(where, "intrinsic matrix is not finite")
+    tol = PINHOLE_TOLERANCE
+    if not np.abs(m[2, :3] - (0.0, 0.0, 1.0)).max() <= tol:
+        raise CSAInputError(where, f"not a pinhole intrinsic matrix: its third row must be 0 0 1, got {' '.join(f'{v:g}' for v in m[2, :3])}")
+    if not abs(m[1, 0]) <= tol * max(1.0, intr.fy):
+        raise CSAInputError(where, f"not a pinhole intrinsic matrix: the cell below fx must be 0, got {m[1, 0]:g}")
+    if not abs(m[0, 1]) <= 1e3 * tol * intr.fx:
+        raise CSAInputError(where, f"skew {m[0, 1]:g} is not supported: the camera model is a pinhole without skew (the cell right of fx must be 0)")
+    if m.shape == (4, 4) and not (np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() <= tol and np.abs(m[:3, 3]).max() <= tol):
+        raise CSAInputError(where, "not a pinhole intrinsic matrix: the fourth row and column of a 4x4 matrix must be those of the identity (0 0 0 1)")
+    return intr
+
+
 def parse_size(text: str, field: str = "--size") -> tuple[int, int]:
     """``"160x120"`` -> ``(160, 120)`` (width, height); anything else is a :class:`CSAInputError`
     naming ``field``. The one parser of image sizes for the CLI, the server and the benchmarks."""

@@ -11,7 +11,7 @@ import numpy as np
 
 from csa_core.atomic_io import atomic_dir
 from csa_core.data import image_files as imf
-from csa_core.data.camera import Intrinsics, check_intrinsics, check_pose
+from csa_core.data.camera import Intrinsics, check_pose, intrinsics_from_matrix
 from csa_core.data.resample import resample_nearest, resize_color
 from csa_core.data.scannet_labels import load_raw_to_nyu40
 from csa_core.data.scene import NYU40_FOLDER, RAW_SCANNET_FOLDER, Frame, Scene, SkippedFrame
@@ -44,7 +44,7 @@ def label_folders_of(root: Path) -> list[str]:
 
 def _read_intrinsics(root: Path, which: str, width: int, height: int) -> Intrinsics:
     path = root / "intrinsic" / f"intrinsic_{which}.txt"
-    return check_intrinsics(Intrinsics.from_matrix(imf.read_matrix(path, ((3, 3), (4, 4))), width, height), path)
+    return intrinsics_from_matrix(imf.read_matrix(path, ((3, 3), (4, 4))), width, height, path)
 
 
 def _check_size(path: Path, img: np.ndarray, want: tuple[int, int], what: str) -> None:

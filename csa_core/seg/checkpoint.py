@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import asdict, dataclass, field, fields
 from datetime import UTC, datetime
 from pathlib import Path
@@ -166,11 +167,43 @@ def _card_from_metadata(path: str | Path, metadata: dict[str, str]) -> ModelCard
         raise CSAInputError(
             path, f"unsupported checkpoint format {card.format!r} (expected {FORMAT})"
         )
-    if card.arch not in ARCHS:
+    if not isinstance(card.arch, str) or card.arch not in ARCHS:
         raise CSAInputError(path, f"unknown architecture {card.arch!r} (known: {', '.join(ARCHS)})")
-    if len(card.mean) != 3 or len(card.std) != 3 or min(card.std) <= 0:
-        raise CSAInputError(path, "model card: mean and std must have 3 entries, std > 0")
+    _check_card_fields(path, card)
     return card
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _check_card_fields(path: str | Path, card: ModelCard) -> None:
+    """The card's fields have the types and ranges the code that uses them relies on (a card is
+    read from a file anyone may have written): a :class:`CSAInputError` naming the field."""
+    n = card.num_classes
+    if not isinstance(n, int) or isinstance(n, bool) or not 1 <= n <= NUM_CLASSES:
+        raise CSAInputError(path, f"model card: num_classes must be an integer within 1..{NUM_CLASSES} (NYU40 ids), got {n!r}")
+    if not (isinstance(card.class_names, list) and len(card.class_names) == n and all(isinstance(c, str) for c in card.class_names)):
+        raise CSAInputError(path, f"model card: class_names must be a list of {n} names (one per class)")
+    for name in ("mean", "std"):
+        values = getattr(card, name)
+        if not (isinstance(values, list) and len(values) == 3 and all(_is_number(v) for v in values)):
+            raise CSAInputError(path, f"model card: {name} must be a list of 3 finite numbers, got {values!r}"[:300])
+    if min(card.std) <= 0:
+        raise CSAInputError(path, "model card: std entries must be > 0")
+    size = card.input_size
+    if size is not None and not (isinstance(size, list) and len(size) == 2 and all(type(v) is int and v >= 1 for v in size)):
+        raise CSAInputError(path, f"model card: input_size must be [width, height], got {size!r}"[:300])
+    for name in ("train_config", "metrics"):
+        if not isinstance(getattr(card, name), dict):
+            raise CSAInputError(path, f"model card: {name} must be a JSON object")
+    if not (isinstance(card.lineage, list) and all(isinstance(v, str) for v in card.lineage)):
+        raise CSAInputError(path, "model card: lineage must be a list of strings")
+    for name in ("created", "weights_id"):
+        if not isinstance(getattr(card, name), str):
+            raise CSAInputError(path, f"model card: {name} must be a string")
+    if card.parent is not None and not isinstance(card.parent, str):
+        raise CSAInputError(path, "model card: parent must be a string or null")
 
 
 def load_checkpoint(

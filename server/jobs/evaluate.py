@@ -12,7 +12,7 @@ from server.db.models import Evaluation, Frame, Job, Scene
 from server.errors import invalid
 from server.jobs.context import JobContext
 from server.jobs.inputs import load_scene, model_file, torch_device
-from server.lookups import get_model, get_scene
+from server.lookups import get_model, get_scenes, require_ground_truth
 from server.schemas.jobs import EvaluateParams
 
 
@@ -32,7 +32,7 @@ def prepare(session: Session, params: EvaluateParams, job: Job) -> tuple[dict[st
         if not scenes:
             raise invalid("params.scenes", "no scene has ground-truth labels on every frame")
     else:
-        scenes = [get_scene(session, ref) for ref in params.scenes]
+        scenes = [require_ground_truth(session, sc, "params.scenes") for sc in get_scenes(session, params.scenes, "params.scenes")]
     return {"model_id": model.id, "scene_ids": [s.id for s in scenes], "split": params.split}, None
 
 

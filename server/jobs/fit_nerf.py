@@ -17,7 +17,7 @@ from server import capabilities
 from server.db.models import Job
 from server.errors import invalid, not_available
 from server.jobs.context import JobContext
-from server.jobs.inputs import load_scene, model_file, parse_size, torch_device
+from server.jobs.inputs import check_size, load_scene, model_file, parse_size, torch_device
 from server.lookups import get_model, get_scene
 from server.memory_bank import NERF_FILE, add_nerf
 from server.schemas.jobs import FitNerfParams
@@ -59,7 +59,7 @@ def prepare(session: Session, params: FitNerfParams, job: Job) -> tuple[dict[str
             raise not_available(f"labels=predictions needs a segmentation model: {reason}")
         normalized["model_id"] = get_model(session, params.model).id
     if params.size is not None:
-        w, h = parse_size(params.size)
+        w, h = check_size(params.size, [scene])
         if min(w, h) < 8:
             raise invalid("params.size", "width and height must be at least 8")
     return normalized, None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 from csa_core.data import Scene, read_scene
@@ -9,6 +10,7 @@ from csa_core.data.camera import parse_size as camera_parse_size
 from csa_core.data.scene import NYU40_FOLDER
 from server.db.models import ModelVersion
 from server.db.models import Scene as SceneRow
+from server.errors import invalid
 from server.jobs.context import JobContext
 from server.registry import CHECKPOINT_FILE, checkpoint_sha
 from server.scene_folders import write_scene_folder
@@ -17,6 +19,21 @@ from server.scene_folders import write_scene_folder
 def parse_size(text: str | None) -> tuple[int, int] | None:
     """A job's optional ``size`` parameter (``WxH``) as (width, height)."""
     return None if text is None else camera_parse_size(text, "size")
+
+
+def check_size(text: str | None, scenes: Sequence[SceneRow], field: str = "params.size") -> tuple[int, int] | None:
+    """A job's optional working size, refused (422 naming ``field``) when it is larger than the
+    colour frames of all its ``scenes``: a job holds every frame at this size, so upsampling
+    would only multiply its memory (a 40x30 scene read at 8192x8192 takes gigabytes), while the
+    frames themselves are bounded by the upload limits."""
+    size = parse_size(text)
+    if size is None:
+        return None
+    widest = max((int(s.intrinsics["width"]) for s in scenes if s.intrinsics), default=0)
+    tallest = max((int(s.intrinsics["height"]) for s in scenes if s.intrinsics), default=0)
+    if size[0] > widest or size[1] > tallest:
+        raise invalid(field, f"{size[0]}x{size[1]} is larger than the scene's frames ({widest}x{tallest}); jobs work at the frames' size or smaller")
+    return size
 
 
 def torch_device(ctx: JobContext) -> str | None:

@@ -11,8 +11,8 @@ from sqlalchemy.orm import Session
 from server.db.models import Job, ModelVersion
 from server.errors import conflict, invalid
 from server.jobs.context import JobContext
-from server.jobs.inputs import load_scene, parse_size, torch_device
-from server.lookups import get_scene
+from server.jobs.inputs import check_size, load_scene, torch_device
+from server.lookups import get_scenes, require_ground_truth
 from server.registry import register_checkpoint
 from server.schemas.jobs import PretrainParams
 
@@ -23,12 +23,15 @@ def prepare(session: Session, params: PretrainParams, job: Job) -> tuple[dict[st
     arch = params.arch or DEFAULT_ARCH
     if arch not in ARCH_NAMES:
         raise invalid("params.arch", f"unknown architecture {arch!r} (known: {', '.join(ARCH_NAMES)})")
-    scenes = [get_scene(session, r) for r in params.scenes]
-    val = [get_scene(session, r) for r in params.val_scenes or []]
-    for sc in scenes + val:
-        if sc.intrinsics is None:
-            raise invalid("params.scenes", f"scene {sc.name!r} has no frames")
-    size = parse_size(params.size) or (scenes[0].intrinsics["width"], scenes[0].intrinsics["height"])
+    scenes = get_scenes(session, params.scenes, "params.scenes")
+    val = get_scenes(session, params.val_scenes or [], "params.val_scenes")
+    both = sorted({s.name for s in scenes} & {s.name for s in val})
+    if both:
+        raise invalid("params.val_scenes", f"scene {both[0]!r} is also a training scene")
+    for field, group in (("params.scenes", scenes), ("params.val_scenes", val)):
+        for sc in group:
+            require_ground_truth(session, sc, field)  # trains and scores on the uploaded labels
+    size = check_size(params.size, scenes) or (scenes[0].intrinsics["width"], scenes[0].intrinsics["height"])
     if min(size) < 8:
         raise invalid("params.size", "width and height must be at least 8")
     name = params.name or f"pretrain-{job.id}"

@@ -11,7 +11,9 @@ from fastapi import APIRouter, File, Form, Response, UploadFile, status
 from fastapi.responses import FileResponse
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm.exc import StaleDataError
 
+from csa_core.data.image_files import COLOR_EXTS
 from csa_core.data.scene_io import frame_names
 from server.archives import ArchiveLimits, UnsafeArchive, extract_archive
 from server.db.models import Frame, Scene
@@ -34,6 +36,10 @@ router = APIRouter(prefix="/scenes/{scene_ref}", tags=["frames"], responses={**E
 _TEXT_LIMIT = 64 * 1024  # pose and intrinsics files are a few hundred bytes
 
 
+def _race() -> APIError:
+    return APIError(409, "conflict", "another upload to this scene ran at the same time; retry")
+
+
 async def _read(upload: UploadFile | None, field: str, limit: int) -> bytes | None:
     if upload is None:
         return None
@@ -52,18 +58,28 @@ def _text(data: bytes | None, field: str) -> str | None:
         raise invalid(field, "must be UTF-8 text (a whitespace-separated matrix)") from None
 
 
+def _scene_still_there(db, scene_id: int, scene_ref: str) -> Scene:
+    """The scene again after a failed transaction; 404 when a concurrent request deleted it."""
+    scene = db.get(Scene, scene_id)
+    if scene is None:
+        raise not_found("scene", scene_ref)
+    return scene
+
+
 def _store_with_retry(db, services, scene: Scene, name: str, valid, replace: bool):
-    """Store a frame; a concurrent identical upload that won the race counts as a re-upload."""
+    """Store a frame; a concurrent identical upload that won the race counts as a re-upload,
+    and a scene deleted meanwhile is a 404 (its frame row cannot be written)."""
+    scene_id, scene_name = scene.id, scene.name
     for attempt in range(2):
         try:
             outcome = store_frame(db, services.store, scene, name, valid, replace=replace)
             db.commit()
             return outcome
-        except IntegrityError:
+        except (IntegrityError, StaleDataError):  # a concurrent upload, or the scene deleted meanwhile
             db.rollback()
+            scene = _scene_still_there(db, scene_id, scene_name)
             if attempt:
-                raise
-            scene = db.get(Scene, scene.id)
+                raise _race() from None
     raise AssertionError("unreachable")
 
 
@@ -152,7 +168,26 @@ def _archive_frames(root: Path) -> Path:
     raise invalid("archive", "no scene folder inside (expected color/, depth/, pose/ and intrinsic/ at the top or in one folder)")
 
 
+def _color_images(color_dir: Path) -> dict[str, Path]:
+    """Frame name -> its colour image in an extracted archive's ``color/`` (the entries
+    ``frame_names`` counts: a .jpg/.jpeg/.png suffix in any case, not hidden). A name with
+    two images (``0.jpg`` and ``0.png``) or an entry that is a folder is refused, naming it."""
+    found: dict[str, Path] = {}
+    for p in sorted(color_dir.iterdir()):
+        if p.suffix.lower() not in COLOR_EXTS or p.name.startswith("."):
+            continue
+        field = f"archive:color/{p.name}"
+        if not p.is_file():
+            raise invalid(field, "is a folder, not an image file")
+        if p.stem in found:
+            raise invalid(field, f"frame {p.stem!r} has two colour images ({found[p.stem].name} and {p.name}); keep one")
+        found[p.stem] = p
+    return found
+
+
 def _read_member(path: Path, field: str, limit: int) -> bytes:
+    if path.exists() and not path.is_file():
+        raise invalid(field, "is a folder, not a file")
     if not path.is_file():
         raise invalid(field, "file missing from the archive")
     if path.stat().st_size > limit:
@@ -191,19 +226,21 @@ async def upload_archive(
             raise invalid("archive", str(e)) from None
         packed.unlink()
         color_dir = root / "color"
+        colors = _color_images(color_dir)
         names = frame_names(color_dir)
         if not names:
             raise invalid("archive", "color/ holds no .jpg/.png images")
         intr_file = root / "intrinsic" / "intrinsic_color.txt"
         dintr_file = root / "intrinsic" / "intrinsic_depth.txt"
-        intr_text = _text(_read_member(intr_file, "archive:intrinsic/intrinsic_color.txt", 65536), "archive:intrinsic/intrinsic_color.txt") if scene.intrinsics is None or intr_file.is_file() else None
-        dintr_text = _text(dintr_file.read_bytes(), "archive:intrinsic/intrinsic_depth.txt") if dintr_file.is_file() else None
+        intr_field, dintr_field = "archive:intrinsic/intrinsic_color.txt", "archive:intrinsic/intrinsic_depth.txt"
+        intr_text = _text(_read_member(intr_file, intr_field, _TEXT_LIMIT), intr_field) if scene.intrinsics is None or intr_file.is_file() else None
+        dintr_text = _text(_read_member(dintr_file, dintr_field, _TEXT_LIMIT), dintr_field) if dintr_file.exists() else None
         camera = scene_camera(scene)
         valid_frames, skipped = [], []
         limit = st.max_frame_upload_bytes
         for name in names:
             check_frame_name(name, f"archive:color/{name}")
-            color_path = next(p for p in (color_dir / f"{name}{e}" for e in (".jpg", ".jpeg", ".png", ".JPG", ".PNG")) if p.is_file())
+            color_path = colors[name]
             labels_path = root / "label-nyu40" / f"{name}.png"
             fields = {
                 "color": f"archive:color/{color_path.name}",
@@ -217,7 +254,7 @@ async def upload_archive(
                 color=_read_member(color_path, fields["color"], limit),
                 depth=_read_member(root / "depth" / f"{name}.png", fields["depth"], limit),
                 pose=_text(_read_member(root / "pose" / f"{name}.txt", fields["pose"], _TEXT_LIMIT), fields["pose"]) or "",
-                labels=_read_member(labels_path, fields["labels"], limit) if labels_path.is_file() else None,
+                labels=_read_member(labels_path, fields["labels"], limit) if labels_path.exists() else None,
                 intrinsics=intr_text,
                 depth_intrinsics=dintr_text,
                 fields=fields,
@@ -242,9 +279,10 @@ async def upload_archive(
                 outcome = store_frame(db, services.store, scene, name, valid, replace=replace)
                 (added if outcome.created else replaced if outcome.replaced else unchanged).append(name)
             db.commit()
-        except IntegrityError:
+        except (IntegrityError, StaleDataError):  # a concurrent upload, or the scene deleted meanwhile
             db.rollback()
-            raise APIError(409, "conflict", "another upload to this scene ran at the same time; retry") from None
+            _scene_still_there(db, scene.id, scene_ref)
+            raise _race() from None
         return ArchiveUploadOut(scene_id=scene.id, added=added, unchanged=unchanged, replaced=replaced, skipped=skipped)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -11,7 +11,9 @@ from typing import Annotated
 from fastapi import APIRouter, File, Form, Query, UploadFile, status
 from fastapi.responses import FileResponse
 from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
 from csa_core.data.camera import parse_size
 from csa_core.errors import CSAInputError
@@ -60,6 +62,30 @@ def list_models(db: DbDep, lineage: Annotated[Name | None, Query()] = None) -> l
     return [model_out(db, m) for m in db.scalars(q)]
 
 
+def _checked_card(path: Path, max_pixels: int):
+    """The model card of an uploaded checkpoint, once the whole file has been checked: the card
+    (``csa_core.seg.checkpoint``), its input size (inference and jobs run the network at it, so
+    it may not exceed the pixels of an image the service accepts), and weights that load into
+    the card's network on the CPU, so that nothing registered can fail later at inference or in
+    a job; 422 otherwise."""
+    from csa_core.seg import load_checkpoint, read_model_card
+
+    try:
+        card = read_model_card(path)
+        size = card.input_size
+        if size is not None:
+            try:
+                w, h = parse_size(f"{size[0]}x{size[1]}", "checkpoint")
+            except CSAInputError as e:
+                raise CSAInputError("checkpoint", f"model card input_size: {e.problem}") from None
+            if w * h > max_pixels:
+                raise CSAInputError("checkpoint", f"model card input_size: {w}x{h} is more than the limit of {max_pixels} pixels")
+        load_checkpoint(path, device="cpu")
+    except CSAInputError as e:
+        raise invalid("checkpoint", e.problem) from None
+    return card
+
+
 @router.post(
     "",
     response_model=ModelOut,
@@ -78,8 +104,6 @@ async def register_model(
     reason = capabilities.missing_reason("seg")
     if reason is not None:
         raise not_available(reason)
-    from csa_core.seg import read_model_card
-
     if db.scalar(select(ModelVersion.id).where(ModelVersion.name == name)) is not None:
         raise conflict(f"a model version named {name!r} exists", field="name")
     lineage = lineage or name
@@ -96,19 +120,15 @@ async def register_model(
                 if size > limit:
                     raise too_large("checkpoint", limit)
                 out.write(chunk)
-        try:
-            card = read_model_card(path)
-            size = card.input_size  # inference runs the network at this size
-            if size is not None:
-                if not (isinstance(size, list) and len(size) == 2 and all(type(v) is int for v in size)):
-                    raise CSAInputError("checkpoint", f"must be [width, height], got {size!r}")
-                parse_size(f"{size[0]}x{size[1]}", "checkpoint")
-        except CSAInputError as e:
-            raise invalid("checkpoint", f"model card input_size: {e.problem}" if e.where == "checkpoint" else e.problem) from None
+        card = await run_in_threadpool(_checked_card, path, services.settings.max_image_pixels)
         model = register_checkpoint(
             db, services.store, path, name=name, lineage=lineage, arch=card.arch, metrics=dict(card.metrics or {}), meta={"task": "upload", "card_created": card.created}, make_current=make_current
         )
-        db.commit()
+        try:
+            db.commit()
+        except IntegrityError:  # the same name registered by a concurrent request
+            db.rollback()
+            raise conflict(f"a model version named {name!r} exists", field="name") from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return model_out(db, model)

@@ -1,0 +1,408 @@
+"""Hostile clients over real HTTP, beyond the absurd numbers of test_hardening.py: archives whose
+entries do not map to one file each, corrupt compressed streams, intrinsic matrices that are not
+pinhole matrices, a second depth camera sneaked into a scene, forged model cards, uploads racing
+a scene's deletion, and job parameters that would make a job read a scene twice or at sizes no
+frame has. Every answer is a 4xx whose ``field`` names the culprit, nothing is stored, and no
+error message shows a path of the server.
+
+SQLite only, no worker (queued jobs never run): the rules live in the request path.
+"""
+
+from __future__ import annotations
+
+import io
+import itertools
+import json
+import random
+import shutil
+import tarfile
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from csa_core.errors import CSAInputError
+from tests.server.conftest import API_KEY, LiveServer
+
+W, H = 32, 24
+K = "30 0 15.5\n0 31 11.5\n0 0 1\n"
+POSE = "1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n"
+_names = itertools.count()
+
+
+def png(img: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", img)
+    assert ok
+    return buf.tobytes()
+
+
+def jpg(img: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".jpg", img)
+    assert ok
+    return buf.tobytes()
+
+
+def color(seed: int = 0, w: int = W, h: int = H) -> bytes:
+    return png(np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8))
+
+
+def depth(w: int = W, h: int = H) -> bytes:
+    return png(np.full((h, w), 1500, np.uint16))
+
+
+def labels(value: int = 3) -> bytes:
+    return png(np.full((H, W), value, np.uint8))
+
+
+SCENE = {"color/0.png": color(), "depth/0.png": depth(), "pose/0.txt": POSE.encode(), "intrinsic/intrinsic_color.txt": K.encode()}
+
+
+@pytest.fixture
+def http(api_server: LiveServer) -> Iterator[httpx.Client]:
+    with httpx.Client(base_url=api_server.url, headers={"X-API-Key": API_KEY}, timeout=30) as c:
+        yield c
+
+
+def new_scene(http: httpx.Client) -> str:
+    name = f"hostile-{next(_names)}"
+    assert http.post("/api/v1/scenes", json={"name": name}).status_code == 201
+    return name
+
+
+def frame_count(http: httpx.Client, scene: str) -> int:
+    r = http.get(f"/api/v1/scenes/{scene}/frames")
+    assert r.status_code == 200
+    return len(r.json())
+
+
+def refused(r: httpx.Response, status: int, field: str, *words: str) -> str:
+    """The answer is ``status`` with ``field`` named; returns the message (which has ``words``)."""
+    assert r.status_code == status, f"{r.status_code}: {r.text[:400]}"
+    error = r.json()["error"]
+    assert error["field"] == field, error
+    for word in words:
+        assert word in error["message"], error
+    return error["message"]
+
+
+def tar_of(entries: list[tuple[str, bytes | None]], mode: str = "w") -> bytes:
+    """A tar of files (bytes) and folders (None), in this order, duplicates kept."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode=mode) as tf:
+        for name, data in entries:
+            info = tarfile.TarInfo(name)
+            if data is None:
+                info.type = tarfile.DIRTYPE
+                tf.addfile(info)
+            else:
+                info.size = len(data)
+                tf.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def zip_of(entries: list[tuple[str, bytes]], compression: int = zipfile.ZIP_STORED) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression) as zf:
+        for i, (name, data) in enumerate(entries):
+            if any(n == name for n, _ in entries[:i]):
+                with pytest.warns(UserWarning, match="Duplicate name"):
+                    zf.writestr(name, data)
+            else:
+                zf.writestr(name, data)
+    return buf.getvalue()
+
+
+def upload_archive(http: httpx.Client, scene: str, data: bytes) -> httpx.Response:
+    return http.post(f"/api/v1/scenes/{scene}/archive", files={"archive": ("scene.bin", data, "application/octet-stream")})
+
+
+def upload_frame(http: httpx.Client, scene: str, name: str, **parts: bytes | None) -> httpx.Response:
+    files = {"color": color(), "depth": depth(), "pose": POSE.encode(), "intrinsics": K.encode()}
+    files.update(parts)
+    return http.post(f"/api/v1/scenes/{scene}/frames", files={k: (k, v, "application/octet-stream") for k, v in files.items() if v is not None}, data={"name": name})
+
+
+# --- archives ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("extra", "field", "problem"),
+    [
+        ([("color/1.png", None), ("depth/1.png", depth()), ("pose/1.txt", POSE.encode())], "archive:color/1.png", "is a folder"),
+        ([("color/0.jpg", jpg(np.zeros((H, W, 3), np.uint8)))], "archive:color/0.png", "two colour images (0.jpg and 0.png)"),
+        ([("pose/0.txt", None)], "archive:pose/0.txt", "is a folder"),
+        ([("intrinsic/intrinsic_depth.txt", None)], "archive:intrinsic/intrinsic_depth.txt", "is a folder"),
+        ([("label-nyu40/0.png", None)], "archive:label-nyu40/0.png", "is a folder"),
+    ],
+    ids=["colour-folder", "two-colour-images", "pose-folder", "depth-intrinsics-folder", "labels-folder"],
+)
+def test_archive_entries_that_are_not_one_file_per_part_are_refused(http: httpx.Client, extra, field: str, problem: str) -> None:
+    """A colour folder named like an image used to end in a 500 (StopIteration); two images for
+    one frame or a part that is a folder were picked or skipped without a word."""
+    entries = [(n, d) for n, d in SCENE.items() if not any(n == e for e, _ in extra)] + extra
+    scene = new_scene(http)
+    refused(upload_archive(http, scene, tar_of(entries)), 422, field, problem)
+    assert frame_count(http, scene) == 0
+
+
+def test_archive_colour_suffixes_in_any_case_are_read(http: httpx.Client) -> None:
+    """``0.Png`` counts as a frame (as the scene reader counts it) and is stored, not a 500."""
+    entries = [("color/0.Png", SCENE["color/0.png"]), *[(n, d) for n, d in SCENE.items() if not n.startswith("color/")]]
+    scene = new_scene(http)
+    r = upload_archive(http, scene, tar_of(entries))
+    assert r.status_code == 200 and r.json()["added"] == ["0"], r.text[:300]
+
+
+@pytest.mark.parametrize(
+    ("archive", "problem"),
+    [
+        (lambda: zip_of([*SCENE.items(), ("color/0.png", color(seed=7))]), "'color/0.png': the archive holds this path twice"),
+        (lambda: tar_of([*SCENE.items(), ("color/0.png", color(seed=7))]), "'color/0.png': the archive holds this path twice"),
+        (lambda: tar_of([*SCENE.items(), ("pose/0.txt/x", b"1")]), "'pose/0.txt' is a file in this archive, not a folder"),
+        (lambda: tar_of([("color", None), *SCENE.items(), ("color", b"junk")]), "'color': the archive holds this path as a folder and as a file"),
+    ],
+    ids=["zip-same-name-twice", "tar-same-name-twice", "tar-file-then-folder", "tar-folder-then-file"],
+)
+def test_archives_naming_one_path_twice_are_refused(http: httpx.Client, archive, problem: str) -> None:
+    """Which of two same-named entries wins differs between tools: the upload is refused
+    instead of silently keeping the last one (or failing on the server's own file system)."""
+    scene = new_scene(http)
+    message = refused(upload_archive(http, scene, archive()), 422, "archive", problem)
+    assert "/tmp" not in message and "csa-archive" not in message
+    assert frame_count(http, scene) == 0
+
+
+def corrupt(data: bytes, start: int, count: int, seed: int = 0) -> bytes:
+    b = bytearray(data)
+    rng = random.Random(seed)
+    for k in range(start, start + count):
+        b[k] = rng.randrange(256)
+    return bytes(b)
+
+
+def deflated_zip_with_bad_stream() -> bytes:
+    """A zip whose first member's deflate stream is garbage (zlib raises, not zipfile)."""
+    data = zip_of([("color/0.png", random.Random(1).randbytes(3000) + b"a" * 3000), *list(SCENE.items())[1:]], zipfile.ZIP_DEFLATED)
+    start = 30 + len("color/0.png") + 3  # local header, name, a few bytes into the stream
+    return corrupt(data, start, 30)
+
+
+def xz_tar_with_bad_stream() -> bytes:
+    entries = [(f"junk/{i}", random.Random(i).randbytes(20000)) for i in range(3)]
+    data = tar_of([*SCENE.items(), *entries], "w:xz")
+    return corrupt(data, len(data) // 2, 50)
+
+
+@pytest.mark.parametrize("archive", [deflated_zip_with_bad_stream, xz_tar_with_bad_stream], ids=["zip-deflate", "tar-xz"])
+def test_corrupt_compressed_archives_are_422_not_500(http: httpx.Client, archive) -> None:
+    scene = new_scene(http)
+    refused(upload_archive(http, scene, archive()), 422, "archive", "not a readable")
+    assert frame_count(http, scene) == 0
+
+
+def test_archive_errors_never_show_the_servers_paths(http: httpx.Client, api_server: LiveServer) -> None:
+    """A member name longer than the file system allows used to answer with the full path of
+    the server's extraction folder."""
+    scene = new_scene(http)
+    r = upload_archive(http, scene, tar_of([*SCENE.items(), ("color/" + "a" * 300 + ".txt", b"x")]))
+    message = refused(r, 422, "archive", "File name too long")
+    assert str(api_server.settings.resolved_work_dir) not in message and "csa-archive" not in message
+
+
+def test_archive_depth_intrinsics_have_the_text_limit(http: httpx.Client) -> None:
+    scene = new_scene(http)
+    r = upload_archive(http, scene, tar_of([*SCENE.items(), ("intrinsic/intrinsic_depth.txt", b"1 " * 40_000)]))
+    refused(r, 413, "archive:intrinsic/intrinsic_depth.txt", "65536 bytes")
+    assert frame_count(http, scene) == 0
+
+
+# --- cameras -------------------------------------------------------------------------------
+
+NOT_PINHOLE = [
+    ("30 0 15.5\n0 31 11.5\n7 7 7\n", "third row must be 0 0 1"),
+    ("30 0 15.5\n0 31 11.5\n0 0 2\n", "third row must be 0 0 1"),
+    ("30 9 15.5\n0 31 11.5\n0 0 1\n", "skew 9 is not supported"),
+    ("30 0 15.5\n4 31 11.5\n0 0 1\n", "the cell below fx must be 0"),
+    ("30 0 15.5 0\n0 31 11.5 0\n0 0 1 0\n5 5 5 5\n", "fourth row and column"),
+    ("30 0 15.5 3\n0 31 11.5 0\n0 0 1 0\n0 0 0 1\n", "fourth row and column"),
+]
+
+
+@pytest.mark.parametrize(("matrix", "problem"), NOT_PINHOLE)
+def test_intrinsic_matrices_that_are_not_pinhole_matrices_are_refused(http: httpx.Client, matrix: str, problem: str) -> None:
+    """Those cells used to be ignored: a camera with skew or a homogeneous scale was stored as
+    another camera than the one the client described."""
+    scene = new_scene(http)
+    refused(upload_frame(http, scene, "0", intrinsics=matrix.encode()), 422, "intrinsics", problem)
+    r = upload_archive(http, scene, tar_of(list({**SCENE, "intrinsic/intrinsic_color.txt": matrix.encode()}.items())))
+    refused(r, 422, "archive:intrinsic/intrinsic_color.txt", problem)
+    assert frame_count(http, scene) == 0
+
+
+def test_the_scene_reader_applies_the_same_rule(synth_scene: Path, tmp_path: Path) -> None:
+    """The command line reads scene folders with the same check (one rule, in csa_core)."""
+    from csa_core.data import read_scene
+
+    folder = shutil.copytree(synth_scene, tmp_path / "skewed")
+    K4 = np.loadtxt(folder / "intrinsic" / "intrinsic_color.txt")
+    K4[0, 1] = 5.0
+    np.savetxt(folder / "intrinsic" / "intrinsic_color.txt", K4)
+    with pytest.raises(CSAInputError, match="skew 5 is not supported"):
+        read_scene(folder)
+
+
+def test_a_scene_keeps_the_depth_camera_of_its_first_frame(http: httpx.Client) -> None:
+    """A later frame could bring depth intrinsics to a scene whose first frame had none and
+    change the depth camera of every frame stored before it; and a scene with its own depth
+    camera refused later frames that (rightly) did not repeat the depth intrinsics."""
+    plain = new_scene(http)
+    assert upload_frame(http, plain, "0").status_code == 201
+    r = upload_frame(http, plain, "1", color=color(seed=1), intrinsics=None, depth_intrinsics=b"99 0 15.5\n0 99 11.5\n0 0 1\n")
+    refused(r, 422, "depth_intrinsics", "one depth camera")
+    assert frame_count(http, plain) == 1
+    assert http.get(f"/api/v1/scenes/{plain}").json()["depth_size"] == [W, H]
+
+    own = new_scene(http)  # depth of another aspect ratio, with its own camera
+    d_k = b"15 0 8\n0 15 4.5\n0 0 1\n"
+    assert upload_frame(http, own, "0", depth=depth(16, 9), depth_intrinsics=d_k).status_code == 201
+    r = upload_frame(http, own, "1", color=color(seed=2), depth=depth(16, 9), intrinsics=None)
+    assert r.status_code == 201, r.text[:300]
+    refused(upload_frame(http, own, "2", color=color(seed=3), depth=depth(16, 9), depth_intrinsics=b"16 0 8\n0 15 4.5\n0 0 1\n"), 422, "depth_intrinsics", "differ")
+    assert frame_count(http, own) == 2
+
+
+# --- model checkpoints ---------------------------------------------------------------------
+
+BASE_CARD = {"arch": "lraspp_mobilenet_v3_large", "format": "csa-seg-checkpoint/1"}
+
+
+def checkpoint(card: dict | list) -> bytes:
+    import torch
+    from safetensors.torch import save
+
+    return save({"x": torch.zeros(1)}, metadata={"csa": json.dumps(card)})
+
+
+@pytest.mark.parametrize(
+    ("card", "problem"),
+    [
+        ({**BASE_CARD, "std": ["a", "b", "c"]}, "std must be a list of 3 finite numbers"),
+        ({**BASE_CARD, "std": "abc"}, "std must be a list of 3 finite numbers"),
+        ({**BASE_CARD, "mean": 5}, "mean must be a list of 3 finite numbers"),
+        ({**BASE_CARD, "num_classes": 10**9}, "num_classes must be an integer within 1..40"),
+        ({**BASE_CARD, "num_classes": "x"}, "num_classes must be an integer within 1..40"),
+        ({**BASE_CARD, "class_names": 3}, "class_names must be a list of 40 names"),
+        ({**BASE_CARD, "metrics": [1, 2]}, "metrics must be a JSON object"),
+        ({**BASE_CARD, "input_size": [8192, 8192]}, "more than the limit"),
+        (BASE_CARD, "weights do not match lraspp_mobilenet_v3_large"),
+    ],
+    ids=["std-strings", "std-string", "mean-number", "num-classes-huge", "num-classes-text", "class-names", "metrics-list", "input-size-huge", "weights"],
+)
+def test_forged_model_cards_are_refused_at_upload(http: httpx.Client, card: dict, problem: str) -> None:
+    """Cards with wrong types answered 500; a card with absurd classes or weights that do not
+    fit its network was registered and made every later prediction with it fail."""
+    before = http.get("/api/v1/models").json()
+    r = http.post("/api/v1/models", files={"checkpoint": ("m.safetensors", checkpoint(card), "application/octet-stream")}, data={"name": f"forged-{next(_names)}"})
+    message = refused(r, 422, "checkpoint", problem)
+    assert "/tmp" not in message
+    assert http.get("/api/v1/models").json() == before
+
+
+# --- a scene deleted while a frame is being stored -----------------------------------------
+
+
+@pytest.mark.parametrize("first", [True, False], ids=["first-frame", "later-frame"])
+def test_an_upload_racing_the_deletion_of_its_scene_is_404(http: httpx.Client, api_server: LiveServer, monkeypatch, first: bool) -> None:
+    """The scene disappears between validation and the frame's row (another client deleted
+    it): the upload answers 404 instead of a 500 from the database."""
+    from server.db.models import Scene
+    from server.routers import frames
+
+    scene = new_scene(http)
+    if not first:
+        assert upload_frame(http, scene, "0").status_code == 201
+    real = frames.store_frame
+
+    def delete_first(db, store, row, *args, **kwargs):
+        with api_server.services.sessions() as other:
+            other.delete(other.get(Scene, row.id))
+            other.commit()
+        return real(db, store, row, *args, **kwargs)
+
+    monkeypatch.setattr(frames, "store_frame", delete_first)
+    r = upload_frame(http, scene, "1", color=color(seed=4))
+    assert r.status_code == 404 and r.json()["error"]["code"] == "not_found", r.text[:300]
+    monkeypatch.undo()
+    assert http.get(f"/api/v1/scenes/{scene}").status_code == 404
+
+
+# --- job parameters ------------------------------------------------------------------------
+
+
+@pytest.fixture
+def scenes(http: httpx.Client) -> tuple[str, str, int]:
+    """A labelled scene (by name and id) and an unlabelled one, one frame each."""
+    labelled, unlabelled = new_scene(http), new_scene(http)
+    assert upload_frame(http, labelled, "0", labels=labels()).status_code == 201
+    assert upload_frame(http, unlabelled, "0").status_code == 201
+    return labelled, unlabelled, http.get(f"/api/v1/scenes/{labelled}").json()["id"]
+
+
+def test_jobs_refuse_scene_lists_that_name_a_scene_twice(http: httpx.Client, scenes) -> None:
+    """``scenes: [s] * 1000`` made a job read one scene a thousand times; a scene named once by
+    name and once by id is the same scene."""
+    labelled, _, ident = scenes
+    before = len(http.get("/api/v1/jobs").json())
+    for body, field in [
+        ({"kind": "pretrain", "params": {"scenes": [labelled] * 1000}}, "params.scenes"),
+        ({"kind": "pretrain", "params": {"scenes": [labelled, ident]}}, "params.scenes"),
+        ({"kind": "pretrain", "params": {"scenes": [labelled], "val_scenes": [labelled]}}, "params.val_scenes"),
+    ]:
+        refused(http.post("/api/v1/jobs", json=body), 422, field, labelled)
+    assert len(http.get("/api/v1/jobs").json()) == before
+
+
+def test_jobs_needing_ground_truth_refuse_unlabelled_scenes_when_queued(http: httpx.Client, scenes) -> None:
+    """They used to be queued and fail when they ran (a fit_nerf on ground truth still does: the
+    dashboard's test of a failed job relies on it)."""
+    labelled, unlabelled, _ = scenes
+    before = len(http.get("/api/v1/jobs").json())
+    r = http.post("/api/v1/jobs", json={"kind": "pretrain", "params": {"scenes": [labelled, unlabelled]}})
+    refused(r, 422, "params.scenes", unlabelled, "1 of 1 frames have no ground-truth labels (e.g. 0)")
+    r = http.post("/api/v1/jobs", json={"kind": "pretrain", "params": {"scenes": [labelled], "val_scenes": [unlabelled]}})
+    refused(r, 422, "params.val_scenes", unlabelled)
+    assert len(http.get("/api/v1/jobs").json()) == before
+
+
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [
+        (lambda s: {"kind": "fit_nerf", "params": {"scene": s, "labels": "none", "size": "8192x8192"}}, "params.size"),
+        (lambda s: {"kind": "fit_nerf", "params": {"scene": s, "labels": "none", "size": "64x16"}}, "params.size"),
+        (lambda s: {"kind": "pretrain", "params": {"scenes": [s], "size": "4096x4096", "batch_size": 1024}}, "params.size"),
+    ],
+    ids=["fit-8192", "fit-wider", "pretrain-4096"],
+)
+def test_jobs_refuse_working_sizes_beyond_the_scenes_frames(http: httpx.Client, scenes, body, field: str) -> None:
+    """A 32x24 scene read at 8192x8192 holds gigabytes per frame; frames are bounded by the
+    upload limits, so a job's size is bounded by its frames."""
+    labelled, _, _ = scenes
+    before = len(http.get("/api/v1/jobs").json())
+    refused(http.post("/api/v1/jobs", json=body(labelled)), 422, field, f"larger than the scene's frames ({W}x{H})")
+    assert len(http.get("/api/v1/jobs").json()) == before
+
+
+def test_jobs_at_the_frames_size_or_smaller_are_queued(http: httpx.Client, scenes) -> None:
+    """The other side of the rules above."""
+    labelled, _, _ = scenes
+    for body in (
+        {"kind": "fit_nerf", "params": {"scene": labelled, "labels": "ground_truth", "size": f"{W}x{H}", "steps": 10}},
+        {"kind": "pretrain", "params": {"scenes": [labelled], "size": "16x12", "epochs": 1, "name": f"ok-{next(_names)}"}},
+    ):
+        r = http.post("/api/v1/jobs", json=body)
+        assert r.status_code == 202, r.text[:300]
+        assert http.post(f"/api/v1/jobs/{r.json()['id']}/cancel").json()["status"] == "cancelled"
