@@ -9,6 +9,8 @@ Examples (run from the repository root):
     python benchmarks/fusion_bench.py folder:data/office_0 --labels label-noisy
     python benchmarks/fusion_bench.py synth:studio:1 --predictions model.safetensors
     python benchmarks/fusion_bench.py ../shared/data/7scenes-kitchen-100 --frames 100
+    python benchmarks/fusion_bench.py ../shared/data/7scenes-kitchen-100 --frames 100 \
+        --space-labels --variants clean,hard --presets none
 
 Scenes: ``synth:FAMILY:SEED`` (rendered in memory), ``folder:PATH`` or a bare path to a scene
 folder, and a 7-Scenes sequence folder (bare path or ``7scenes:PATH``), imported with the
@@ -26,6 +28,20 @@ labels with systematic (view-consistent) errors besides the per-frame ones; with
 colour). Scenes without labels (7-Scenes) get colour and depth quality instead: the NeRF's
 held-out PSNR and depth L1 (rendered without the view's depth) against the map's depth L1 and
 coverage (share of held-out pixels whose ray meets the map).
+
+``--space-labels`` gives scenes without labels (7-Scenes, a scene folder without
+``label-nyu40``) ground truth defined in 3D on their own geometry
+(``csa_core.data.space_labels``, seeded with ``--seed``): floor, ceiling and walls found as
+planes in the fused depth, the rest of space cut into furniture and object regions; a pixel's
+label is that of the 3D point its measured depth backprojects to, 0 without depth. They are
+written as the scene's ``label-nyu40`` in memory, so ``--noise`` and the label rows work as for
+synthetic rooms (the printed class shares say what they contain). The labels follow space, not
+real objects: they score multi-view consistency on real geometry and real depth noise, not
+recognition. ``--variants hard`` then adds only the systematic and per-frame label errors: the
+real sensor's colour and depth are kept as measured. ``--space-labels all`` replaces the ground
+truth of labelled scenes too (synthetic rooms: to see whether fusers rank alike on space labels
+and on true labels; their hard variant degrades their clean depth as usual). Only with
+``--noise``.
 
 Rows: ``input`` is the per-frame labels themselves; ``map`` fuses them in 5 cm voxels
 (``build_voxel_map``) and reads each view by ray casting (``render_map_labels``, Frey et al.);
@@ -74,6 +90,7 @@ from csa_core.atomic_io import write_text_atomic
 from csa_core.data.label_noise import corrupt_labels
 from csa_core.data.nyu40 import CLASS_NAMES
 from csa_core.data.scene import NYU40_FOLDER, Scene
+from csa_core.data.space_labels import add_space_labels, label_shares
 from csa_core.data.synth import NOISY_FOLDER, degrade_scene, family_names, parse_size
 from csa_core.errors import CSAInputError
 from csa_core.eval import ConfusionMatrix
@@ -155,18 +172,42 @@ def open_scene(spec: str, size: tuple[int, int], frames: int) -> tuple[Scene, bo
     return scene, labelled
 
 
-def prepare(scene: Scene, labelled: bool, variant: str, args: argparse.Namespace) -> str | None:
+def wants_space_labels(labelled: bool, args: argparse.Namespace) -> bool:
+    """Whether ``--space-labels`` gives this scene its ground truth."""
+    return args.space_labels == "all" or (args.space_labels == "missing" and not labelled)
+
+
+def give_space_labels(scene: Scene, args: argparse.Namespace) -> str:
+    """Write the scene's space labels as its ground truth ``label-nyu40`` (in place); returns
+    their class shares as one printable line."""
+    add_space_labels(scene, args.seed)
+    shares = sorted(label_shares(scene).items(), key=lambda kv: -kv[1])
+    return ", ".join(f"{CLASS_NAMES[c]} {100 * v:.2f}%" for c, v in shares)
+
+
+def prepare(
+    scene: Scene,
+    labelled: bool,
+    variant: str,
+    args: argparse.Namespace,
+    keep_sensor: bool = False,
+) -> str | None:
     """Make the ``variant`` of ``scene`` in place and put the labels to fuse under ``INPUT``;
-    returns what they are (``None``: no labels)."""
+    returns what they are (``None``: no labels). ``keep_sensor``: a real capture, whose hard
+    variant keeps its measured colour and depth and gets only the label errors."""
     source = "predictions" if args.predictions else f"folder {args.labels}" if args.labels else None
     if source is None and not labelled:
         return None
     simulate = source is None  # --noise
-    if variant == "hard":
+    if variant == "hard" and not (keep_sensor and not simulate):
         hard = degrade_scene(
             scene, args.seed, source=NYU40_FOLDER if simulate else None, target=NOISY_FOLDER
         )
-        scene.frames = hard.frames
+        if keep_sensor:  # the label errors only: colour and depth stay the sensor's
+            for frame, degraded in zip(scene.frames, hard.frames, strict=True):
+                frame.labels[NOISY_FOLDER] = degraded.labels[NOISY_FOLDER]
+        else:
+            scene.frames = hard.frames
     if args.labels:
         missing = [f.name for f in scene.frames if args.labels not in f.labels]
         if missing:
@@ -414,10 +455,22 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     for spec in scene_specs(args):
         for variant in args.variants.split(","):
             scene, labelled = open_scene(spec, args.size, args.frames)
+            space = wants_space_labels(labelled, args)
+            # A real capture keeps its colour and depth in the hard variant; a synthetic room
+            # (exact depth) is degraded as usual.
+            keep_sensor = space and not spec.startswith("synth:")
+            if space:
+                shares = give_space_labels(scene, args)
+                labelled = True
+                print(f"{spec}: space labels (seed {args.seed}): {shares}", flush=True)
             if variant == "hard" and not labelled and not (args.labels or args.predictions):
                 print(f"{spec}: no ground truth to degrade from; hard variant skipped")
                 continue
-            labels = prepare(scene, labelled, variant, args)
+            labels = prepare(scene, labelled, variant, args, keep_sensor)
+            if labels is not None and space:
+                labels += ", space-label ground truth"
+                if variant == "hard" and keep_sensor:
+                    labels += ", sensor depth kept"
             has_labels = labels is not None
             head = {"scene": scene.name, "variant": variant, "labels": labels or "no labels"}
             head["views"] = f"{scene.num_train}+{len(scene.val_frames)}"
@@ -548,6 +601,15 @@ def main() -> None:
     labels.add_argument("--labels", default=None, help="a label folder of the scene")
     labels.add_argument("--predictions", default=None, help="a segmentation network checkpoint")
     p.add_argument(
+        "--space-labels",
+        nargs="?",
+        const="missing",
+        default=None,
+        choices=("missing", "all"),
+        help="ground truth defined in 3D (csa_core.data.space_labels) for scenes without labels "
+        "(missing, the default of the bare flag) or for every scene (all); with --noise only",
+    )
+    p.add_argument(
         "--presets",
         default="fast",
         help="comma-separated NeRF presets, or none; PRESET+KEY=VALUE+... adds that row's own "
@@ -568,6 +630,8 @@ def main() -> None:
     )
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
     args = p.parse_args()
+    if args.space_labels and (args.labels or args.predictions):
+        raise SystemExit("--space-labels: only with --noise (not with --labels or --predictions)")
     bad = set(args.variants.split(",")) - {"clean", "hard"}
     if bad:
         raise SystemExit(f"--variants: unknown {', '.join(sorted(bad))} (clean, hard)")
