@@ -62,6 +62,13 @@ class NerfBudget:
     (colour, depth, semantics) after each round; the per-batch schedule takes one full step
     per current-scene image of each network batch.
 
+    ``ray_batches``: how the fit draws its rays (``OptimConfig.ray_batches``), and the
+    semantic-head steps after the fit (``semantic_steps``, 0: none) draw theirs the same way,
+    ``rays_per_step`` at a time at the fit's final rate: the budget's, whatever the NeRF
+    preset says (``fast`` draws label-balanced rays and adds 300 semantic steps of its own for
+    label fusion alone; the adaptation budgets were measured without them,
+    benchmarks/RESULTS.md "Label-balanced ray draws").
+
     The remaining fields override the preset's numbers when set: ray batch, hash table size,
     levels and finest resolution, the semantic feature table's levels (``0``: the semantic
     MLP reads the geometry features only), the semantic MLP's hidden layers, whether that MLP
@@ -77,6 +84,7 @@ class NerfBudget:
     joint_prefit_epochs: float | None = None
     semantic_steps: int = 0
     steps_per_round: int = 100
+    ray_batches: Literal["all", "per_view", "class_balanced"] = "all"
     geometry_steps_per_round: int = 0
     rays_per_step: int | None = None
     log2_table_size: int | None = None

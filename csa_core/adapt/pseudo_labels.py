@@ -52,10 +52,14 @@ def nerf_config(budget: NerfBudget) -> NerfConfig:
         cfg.optim.semantics_in_fit = budget.semantics_in_fit
     if budget.final_lr_fraction is not None:
         cfg.optim.final_lr_fraction = budget.final_lr_fraction
-    if budget.semantic_steps > 0:
-        # The fit's own semantic steps (fit_semantic_nerf), at the budget's ray batch.
-        cfg.optim.semantic_steps = budget.semantic_steps
-        cfg.optim.semantic_rays_per_step = cfg.optim.rays_per_step
+    # How rays are drawn and the semantic-head steps after the fit (fit_semantic_nerf) are the
+    # budget's, not the preset's: at the budget's ray batch and the fit's final rate, drawn as
+    # the fit's (NerfBudget docstring).
+    cfg.optim.ray_batches = budget.ray_batches
+    cfg.optim.semantic_ray_batches = None
+    cfg.optim.semantic_steps = budget.semantic_steps
+    cfg.optim.semantic_rays_per_step = cfg.optim.rays_per_step
+    cfg.optim.semantic_lr_fraction = 1.0
     cfg.seed = budget.seed
     if budget.preset_overrides:
         apply_overrides(cfg, budget.preset_overrides, flag="--set nerf.preset_overrides")

@@ -110,13 +110,15 @@ register = add_nerf_commands
 
 
 def fit_config(args: argparse.Namespace) -> NerfConfig:
-    """The fit's config: the preset, then ``--steps``, ``--dtype`` and ``--seed``, then the
-    ``--set`` overrides (the last word). The checkpoint stores it."""
-    from csa_core.nerf.config import preset
+    """The fit's config: the preset, then ``--steps`` (the semantic steps after the fit scale
+    with it: ``scaled_semantic_steps``), ``--dtype`` and ``--seed``, then the ``--set``
+    overrides (the last word). The checkpoint stores it."""
+    from csa_core.nerf.config import preset, scaled_semantic_steps
     from csa_core.overrides import apply_overrides
 
     cfg = preset(args.preset)
     if args.steps is not None:
+        cfg.optim.semantic_steps = scaled_semantic_steps(cfg.optim, args.steps)
         cfg.optim.steps = args.steps
     if args.dtype is not None:
         cfg.storage_dtype = args.dtype

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from dataclasses import dataclass
 from dataclasses import field as _field
 from typing import Any, Literal
@@ -172,6 +173,21 @@ class OptimConfig:
     # "class_balanced" (ours, experimental) draws from every view, rare labels more often,
     # each ray's losses weighted back by its draw probability (``RayBank.balanced_ids``).
     ray_batches: Literal["all", "per_view", "class_balanced"] = "all"
+    # How the semantic-head steps (``semantic_steps`` above, and joint training's rounds)
+    # draw their rays: None follows ``ray_batches`` (label-stratified when it is
+    # "class_balanced", else uniformly from every view); "all" or "class_balanced" sets them
+    # apart from the fit's, e.g. uniform geometry steps with label-stratified semantic ones.
+    semantic_ray_batches: Literal["all", "class_balanced"] | None = None
+
+
+def scaled_semantic_steps(optim: OptimConfig, steps: int | None) -> int:
+    """The semantic-head steps after a fit of ``steps`` steps: ``optim.semantic_steps`` when
+    ``steps`` is None or the config's own count, else scaled with the fit's length (rounded
+    up), so a shortened fit (``--steps``) keeps its share of semantic steps. The one rule for
+    ``fit_semantic_nerf(steps=...)`` and ``csa nerf fit --steps``."""
+    if steps is None or optim.semantic_steps <= 0:
+        return optim.semantic_steps
+    return math.ceil(optim.semantic_steps * int(steps) / max(1, optim.steps))
 
 
 @dataclass
@@ -223,7 +239,14 @@ def _reference() -> NerfConfig:
 
 def _fast() -> NerfConfig:
     """CPU-friendly: 2^15 table (fp16 checkpoint with the semantic table ~3.5 MB), depth-guided
-    training samples with a free-space loss, occupancy-grid rendering, fewer rays per step."""
+    training samples with a free-space loss, occupancy-grid rendering, fewer rays per step.
+
+    For label fusion: label-balanced ray draws (rare classes get their geometry and labels
+    fitted within the budget) and then 300 semantic-head steps of 8192 rays at a tenth of the
+    rate (about half a pass over every training pixel's label, on the finished geometry).
+    Measured against the voxel map on every synthetic family, clean and hard, and the real
+    7-Scenes kitchen: benchmarks/RESULTS.md "The `fast` preset for label fusion". The
+    adaptation budgets (``csa_core.adapt.config``) set their own draws and semantic steps."""
     return NerfConfig(
         preset="fast",
         field=FieldConfig(
@@ -237,7 +260,14 @@ def _fast() -> NerfConfig:
             uniform_samples=64,
             importance_samples=64,
         ),
-        optim=OptimConfig(steps=1500, rays_per_step=1024),
+        optim=OptimConfig(
+            steps=1500,
+            rays_per_step=1024,
+            ray_batches="class_balanced",
+            semantic_steps=300,
+            semantic_rays_per_step=8192,
+            semantic_lr_fraction=0.1,
+        ),
         loss=LossConfig(free_space=1.0),
         storage_dtype="float16",
     )

@@ -20,7 +20,7 @@ import torch
 from csa_core.data.scene import Frame, Scene
 from csa_core.device import resolve_device
 from csa_core.errors import CSAInputError
-from csa_core.nerf.config import NerfConfig, preset
+from csa_core.nerf.config import NerfConfig, preset, scaled_semantic_steps
 from csa_core.nerf.losses import psnr
 from csa_core.nerf.model import SceneInfo, SemanticNerf
 from csa_core.nerf.normalization import scene_box_from_frames
@@ -84,7 +84,9 @@ def fit_semantic_nerf(
     """Fit a Semantic-NeRF to ``frames`` (default: the scene's training frames) and the labels of
     ``label_folder`` (``None``: colour and depth only).
 
-    ``config`` is a :class:`NerfConfig` or a preset name; ``steps`` overrides its step count.
+    ``config`` is a :class:`NerfConfig` or a preset name; ``steps`` overrides its step count,
+    and the semantic-head steps after the fit (``optim.semantic_steps``) scale with it (a tenth
+    of the fit's steps keeps a tenth of the semantic steps, rounded up).
     ``device``: ``None``/``"auto"`` picks CUDA when available. Returns the model (on ``device``,
     occupancy grid estimated) and the fit's statistics. ``on_progress(message, fraction)``
     (:mod:`csa_core.progress`) hears the step, loss and PSNR every 10 steps and after the last;
@@ -95,7 +97,8 @@ def fit_semantic_nerf(
     frames = list(scene.train_frames if frames is None else frames)
     check_fit_inputs(scene, label_folder, frames)
     n_steps = cfg.optim.steps if steps is None else int(steps)
-    if label_folder is not None and not cfg.optim.semantics_in_fit and cfg.optim.semantic_steps <= 0:
+    semantic_steps = scaled_semantic_steps(cfg.optim, steps)
+    if label_folder is not None and not cfg.optim.semantics_in_fit and semantic_steps <= 0:
         raise ValueError(
             "optim.semantics_in_fit=false leaves the semantic head untrained unless "
             "optim.semantic_steps > 0"
@@ -164,14 +167,14 @@ def fit_semantic_nerf(
     uses_grid = cfg.sampler.render == "occupancy" or isinstance(trainer.sampler, OccupancySampler)
     occupied = nerf.update_occupancy(generator=trainer.generator) if uses_grid else 1.0
     o = cfg.optim
-    if label_folder is not None and o.semantic_steps > 0:
+    if label_folder is not None and semantic_steps > 0:
         trainer.semantic_steps(
-            o.semantic_steps,
+            semantic_steps,
             lr=o.lr * o.semantic_lr_fraction,
             rays_per_step=o.semantic_rays_per_step,
         )
         if on_progress is not None:
-            on_progress(f"NeRF semantic steps ({o.semantic_steps})", 1.0)
+            on_progress(f"NeRF semantic steps ({semantic_steps})", 1.0)
     seconds = time.perf_counter() - t0
     stats = FitStats(
         seconds=seconds,

@@ -73,8 +73,16 @@ class NerfTrainer:
                 f"got {o.ray_batches!r}"
             )
         self.per_view = o.ray_batches == "per_view"
-        # Label-stratified draws need labels; a bank without them draws uniformly.
-        self.balanced = o.ray_batches == "class_balanced" and rays.labels is not None
+        if o.semantic_ray_batches not in (None, "all", "class_balanced"):
+            raise ValueError(
+                "optim.semantic_ray_batches must be None, 'all' or 'class_balanced', "
+                f"got {o.semantic_ray_batches!r}"
+            )
+        # Label-stratified draws need labels; a bank without them draws uniformly. The
+        # semantic-head steps follow the fit's draws unless optim.semantic_ray_batches says.
+        self.balanced = o.ray_batches == "class_balanced"
+        semantic = o.semantic_ray_batches
+        self.semantic_balanced = self.balanced if semantic is None else semantic == "class_balanced"
         power = nerf.config.loss.semantic_depth_power
         if not (math.isfinite(power) and power >= 0):
             raise ValueError(f"loss.semantic_depth_power must be finite and >= 0, got {power}")
@@ -92,7 +100,7 @@ class NerfTrainer:
         view, from the next view of this epoch's random order (``optim.ray_batches="per_view"``),
         or label-stratified with weights (``"class_balanced"``, ``RayBank.balanced_ids``)."""
         if not self.per_view:
-            return self._draw_from_all(self.rays_per_step)
+            return self._draw_from_all(self.rays_per_step, self.balanced)
         if not self._view_order:
             n = len(self.rays.frames)
             order = torch.randperm(n, generator=self.generator, device=self.generator.device)
@@ -100,10 +108,10 @@ class NerfTrainer:
         ids = self.rays.random_ids(self.rays_per_step, self.generator, self._view_order.pop())
         return ids, None
 
-    def _draw_from_all(self, n: int) -> tuple[Tensor, Tensor | None]:
-        """``n`` pixel ids from every view: label-stratified with their weights when the
-        draws are balanced, else uniform (weights None)."""
-        if self.balanced:
+    def _draw_from_all(self, n: int, balanced: bool) -> tuple[Tensor, Tensor | None]:
+        """``n`` pixel ids from every view: label-stratified with their weights when
+        ``balanced`` and the bank has labels, else uniform (weights None)."""
+        if balanced and self.rays.labels is not None:
             return self.rays.balanced_ids(n, self.generator)
         return self.rays.random_ids(n, self.generator), None
 
@@ -167,8 +175,9 @@ class NerfTrainer:
     ) -> float:
         """``steps`` Adam steps on the semantic head alone (fresh Adam, constant ``lr``, default
         the config's), samples placed like rendered labels' (``SemanticNerf.render_sampler``),
-        rays drawn uniformly from every view or, with ``optim.ray_batches="class_balanced"``,
-        label-stratified with their weights as in :meth:`step`, and weighted towards near views
+        rays drawn uniformly from every view or label-stratified with their weights as in
+        :meth:`step` (``optim.semantic_ray_batches``, by default as ``optim.ray_batches``:
+        stratified when it is "class_balanced"), and weighted towards near views
         with ``loss.semantic_depth_power``; returns the last loss."""
         if self.rays.labels is None:
             raise ValueError("semantic steps need labels (RayBank.set_labels)")
@@ -179,7 +188,7 @@ class NerfTrainer:
         n = rays_per_step or self.rays_per_step
         value = float("nan")
         for _ in range(steps):
-            ids, ray_weight = self._draw_from_all(n)
+            ids, ray_weight = self._draw_from_all(n, self.semantic_balanced)
             origins, dirs = self.rays.rays(ids)
             with torch.no_grad():
                 samples = nerf.sample(

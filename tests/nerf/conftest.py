@@ -15,6 +15,10 @@ def tiny_config(steps: int = 40) -> NerfConfig:
     enc.num_levels, enc.log2_table_size, enc.finest_resolution = 6, 12, 128
     cfg.optim.steps = steps
     cfg.optim.rays_per_step = 256
+    # Uniform draws and no semantic steps after the fit, so a fit stays about a second; the
+    # preset's label-fusion draws and steps have tests of their own (tests/nerf/test_trainer.py).
+    cfg.optim.ray_batches = "all"
+    cfg.optim.semantic_steps = 0
     cfg.sampler.occupancy_resolution = 32
     cfg.sampler.march_steps = 192
     cfg.sampler.uniform_samples = cfg.sampler.importance_samples = 32

@@ -183,6 +183,49 @@ def test_the_budget_semantic_steps_run_inside_the_fit():
     assert nerf_config(NerfBudget()).optim.semantic_steps == 0
 
 
+def test_adaptation_budgets_draw_and_step_as_measured_not_as_the_fusion_preset():
+    """``fast`` fuses labels with label-balanced draws and its own semantic steps at a tenth of
+    the rate; a budget built on it draws as ``NerfBudget.ray_batches`` says (uniform unless
+    set), runs its own semantic steps (none by default) at the fit's final rate, and its
+    ``preset_overrides`` still come last."""
+    from csa_core.adapt.config import NerfBudget, cpu, paper, tiny
+    from csa_core.adapt.pseudo_labels import nerf_config
+    from csa_core.nerf.config import preset
+
+    fast = preset("fast").optim
+    assert fast.ray_batches == "class_balanced" and fast.semantic_steps == 300
+    assert fast.semantic_rays_per_step == 8192 and fast.semantic_lr_fraction == 0.1
+    for budget, draws, steps in ((cpu().nerf, "all", 0), (tiny().nerf, "all", 60), (paper().nerf, "per_view", 0)):
+        o = nerf_config(budget).optim
+        assert (o.ray_batches, o.semantic_steps) == (draws, steps)
+        assert o.semantic_ray_batches is None and o.semantic_lr_fraction == 1.0
+    o = nerf_config(NerfBudget(ray_batches="class_balanced", semantic_steps=5)).optim
+    assert (o.ray_batches, o.semantic_steps, o.semantic_rays_per_step) == ("class_balanced", 5, 1024)
+    later = NerfBudget(preset_overrides=("optim.ray_batches=class_balanced", "optim.semantic_steps=7"))
+    assert (nerf_config(later).optim.ray_batches, nerf_config(later).optim.semantic_steps) == ("class_balanced", 7)
+
+
+def test_a_shortened_fit_keeps_its_share_of_semantic_steps(scene, monkeypatch):
+    """``--steps`` (CLI) and ``fit_semantic_nerf(steps=...)`` scale the semantic-head steps
+    after the fit with the fit's length, rounded up (``scaled_semantic_steps``)."""
+    from csa_core.cli.main import build_parser
+    from csa_core.cli.nerf import fit_config
+    from csa_core.nerf.config import preset, scaled_semantic_steps
+
+    fast = preset("fast").optim
+    assert scaled_semantic_steps(fast, None) == 300 and scaled_semantic_steps(fast, 1500) == 300
+    assert scaled_semantic_steps(fast, 150) == 30 and scaled_semantic_steps(fast, 1) == 1
+    assert scaled_semantic_steps(fast, 0) == 0
+    args = build_parser().parse_args(["nerf", "fit", "S", "--out", "x.safetensors", "--steps", "150"])
+    assert (fit_config(args).optim.steps, fit_config(args).optim.semantic_steps) == (150, 30)
+    ran = []
+    monkeypatch.setattr(NerfTrainer, "semantic_steps", lambda self, n, **kw: ran.append((n, kw)) or 0.0)
+    cfg = tiny_config(steps=100)
+    cfg.optim.semantic_steps, cfg.optim.semantic_rays_per_step, cfg.optim.semantic_lr_fraction = 40, 64, 0.1
+    fit_semantic_nerf(scene, "label-nyu40", cfg, steps=5, progress=False)
+    assert ran == [(2, {"lr": pytest.approx(cfg.optim.lr * 0.1), "rays_per_step": 64})]
+
+
 def test_per_view_ray_batches_take_each_view_once_per_epoch(scene):
     """``optim.ray_batches="per_view"`` (the official code's batches): every step's rays come
     from one view, and an epoch (one step per view) visits every view once."""
@@ -299,6 +342,40 @@ def test_class_balanced_ray_batches_train_with_weights(scene):
     assert plain.draw()[1] is None
     nerf.config.optim.ray_batches = "sometimes"
     with pytest.raises(ValueError, match="ray_batches"):
+        NerfTrainer(nerf, bank, schedule_steps=1)
+
+
+def test_semantic_steps_draw_their_own_way_with_semantic_ray_batches(scene):
+    """``optim.semantic_ray_batches``: uniform fit steps with label-stratified semantic-head
+    steps, and the other way round; None follows ``optim.ray_batches``."""
+    cfg = tiny_config(steps=0)
+    nerf = fit_semantic_nerf(scene, None, cfg, progress=False)[0]
+    bank = RayBank(scene.train_frames, scene.intrinsics, label_folder="label-nyu40")
+    calls: list[int] = []
+    balanced_ids = bank.balanced_ids
+
+    def spy(n, gen):
+        calls.append(n)
+        return balanced_ids(n, gen)
+
+    bank.balanced_ids = spy
+    for fit_draws, semantic_draws, fit_balanced, semantic_balanced in (
+        ("all", "class_balanced", False, True),
+        ("class_balanced", "all", True, False),
+        ("all", None, False, False),
+        ("class_balanced", None, True, True),
+    ):
+        nerf.config.optim.ray_batches = fit_draws
+        nerf.config.optim.semantic_ray_batches = semantic_draws
+        trainer = NerfTrainer(nerf, bank, schedule_steps=4, rays_per_step=64, seed=1)
+        calls.clear()
+        assert (trainer.draw()[1] is not None) == fit_balanced
+        assert calls == ([64] if fit_balanced else [])
+        calls.clear()
+        assert math.isfinite(trainer.semantic_steps(3, rays_per_step=32))
+        assert calls == ([32] * 3 if semantic_balanced else [])
+    nerf.config.optim.semantic_ray_batches = "per_view"
+    with pytest.raises(ValueError, match="semantic_ray_batches"):
         NerfTrainer(nerf, bank, schedule_steps=1)
 
 
