@@ -54,6 +54,28 @@ def test_every_cited_page_and_section_exists():
     assert missing == []
 
 
+# benchmarks/RESULTS.md "A" or RESULTS "A", "B": a section is cited by the start of its heading
+RESULTS_CITATION = re.compile(r'(?:benchmarks/RESULTS\.md|RESULTS)`?[,\s(]*((?:"[^"\n]+"(?:\s*,\s*|\s+and\s+)?)*)')
+
+
+def test_every_cited_results_section_exists():
+    """Citations of ``benchmarks/RESULTS.md`` sections (by the start of the heading, quotes in
+    a heading left out) point at a heading that exists."""
+    heads = {h.replace('"', "") for h in headings(REPO / "benchmarks" / "RESULTS.md")}
+    files = [REPO / "README.md"]
+    for top in SCANNED:
+        files += [p for p in (REPO / top).rglob("*") if p.suffix in (".py", ".md")]
+    cited, missing = 0, []
+    for path in files:
+        for quoted in RESULTS_CITATION.findall(path.read_text(errors="replace")):
+            for section in re.findall(r'"([^"]+)"', quoted):
+                cited += 1
+                if not any(h.startswith(section) for h in heads):
+                    missing.append(f"{path.relative_to(REPO)}: benchmarks/RESULTS.md has no section {section!r}")
+    assert cited >= 50  # the code and the docs do cite the measurements
+    assert missing == []
+
+
 def test_no_code_cites_the_old_design_notes():
     offending = [
         f"{p.relative_to(REPO)}:{n}"

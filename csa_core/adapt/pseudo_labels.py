@@ -53,8 +53,8 @@ def nerf_config(budget: NerfBudget) -> NerfConfig:
     if budget.final_lr_fraction is not None:
         cfg.optim.final_lr_fraction = budget.final_lr_fraction
     # How rays are drawn and the semantic-head steps after the fit (fit_semantic_nerf) are the
-    # budget's, not the preset's: at the budget's ray batch and the fit's final rate, drawn as
-    # the fit's (NerfBudget docstring).
+    # budget's, not the preset's: at the budget's ray batch and the fit's starting rate
+    # (optim.lr), drawn as the fit's (NerfBudget docstring).
     cfg.optim.ray_batches = budget.ray_batches
     cfg.optim.semantic_ray_batches = None
     cfg.optim.semantic_steps = budget.semantic_steps

@@ -34,7 +34,8 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class FitStats:
-    """What a fit measured: wall time, steps, rays and samples per second, last losses."""
+    """What a fit measured: wall time (the semantic steps after the fit included), steps, rays
+    and samples per second of the fit's own steps, last losses."""
 
     seconds: float
     steps: int
@@ -98,7 +99,7 @@ def fit_semantic_nerf(
     check_fit_inputs(scene, label_folder, frames)
     n_steps = cfg.optim.steps if steps is None else int(steps)
     semantic_steps = scaled_semantic_steps(cfg.optim, steps)
-    if label_folder is not None and not cfg.optim.semantics_in_fit and semantic_steps <= 0:
+    if label_folder is not None and not cfg.optim.semantics_in_fit and cfg.optim.semantic_steps <= 0:
         raise ValueError(
             "optim.semantics_in_fit=false leaves the semantic head untrained unless "
             "optim.semantic_steps > 0"
@@ -164,23 +165,29 @@ def fit_semantic_nerf(
     finally:
         if bar is not None:
             bar.close()
+    fit_seconds = time.perf_counter() - t0
     uses_grid = cfg.sampler.render == "occupancy" or isinstance(trainer.sampler, OccupancySampler)
     occupied = nerf.update_occupancy(generator=trainer.generator) if uses_grid else 1.0
     o = cfg.optim
     if label_folder is not None and semantic_steps > 0:
+
+        def semantic_report(i: int) -> None:
+            # Every 10 steps and after the last, like the fit's steps (a cancel lands there).
+            if on_progress is not None and (i % 10 == 0 or i == semantic_steps - 1):
+                on_progress(f"NeRF semantic step {i + 1}/{semantic_steps}", 1.0)
+
         trainer.semantic_steps(
             semantic_steps,
             lr=o.lr * o.semantic_lr_fraction,
             rays_per_step=o.semantic_rays_per_step,
+            on_step=semantic_report,
         )
-        if on_progress is not None:
-            on_progress(f"NeRF semantic steps ({semantic_steps})", 1.0)
     seconds = time.perf_counter() - t0
     stats = FitStats(
         seconds=seconds,
         steps=n_steps,
-        rays_per_second=n_steps * trainer.rays_per_step / max(seconds, 1e-9),
-        samples_per_second=trainer.samples_seen / max(seconds, 1e-9),
+        rays_per_second=n_steps * trainer.rays_per_step / max(fit_seconds, 1e-9),
+        samples_per_second=trainer.samples_seen / max(fit_seconds, 1e-9),
         final_loss=metrics["loss"],
         final_psnr=metrics["psnr"],
         occupied_fraction=occupied,

@@ -78,11 +78,14 @@ class NerfTrainer:
                 "optim.semantic_ray_batches must be None, 'all' or 'class_balanced', "
                 f"got {o.semantic_ray_batches!r}"
             )
-        # Label-stratified draws need labels; a bank without them draws uniformly. The
-        # semantic-head steps follow the fit's draws unless optim.semantic_ray_batches says.
-        self.balanced = o.ray_batches == "class_balanced"
+        # Label-stratified draws need labels: a bank without them when the trainer is made
+        # (joint training sets its labels later) draws uniformly throughout. The semantic-head
+        # steps follow the fit's draws unless optim.semantic_ray_batches says.
+        labelled = rays.labels is not None
+        self.balanced = o.ray_batches == "class_balanced" and labelled
         semantic = o.semantic_ray_batches
-        self.semantic_balanced = self.balanced if semantic is None else semantic == "class_balanced"
+        fit_way = o.ray_batches == "class_balanced"
+        self.semantic_balanced = labelled and (fit_way if semantic is None else semantic == "class_balanced")
         power = nerf.config.loss.semantic_depth_power
         if not (math.isfinite(power) and power >= 0):
             raise ValueError(f"loss.semantic_depth_power must be finite and >= 0, got {power}")
@@ -110,8 +113,8 @@ class NerfTrainer:
 
     def _draw_from_all(self, n: int, balanced: bool) -> tuple[Tensor, Tensor | None]:
         """``n`` pixel ids from every view: label-stratified with their weights when
-        ``balanced`` and the bank has labels, else uniform (weights None)."""
-        if balanced and self.rays.labels is not None:
+        ``balanced``, else uniform (weights None)."""
+        if balanced:
             return self.rays.balanced_ids(n, self.generator)
         return self.rays.random_ids(n, self.generator), None
 
@@ -171,14 +174,19 @@ class NerfTrainer:
         return {k: float(v.detach()) for k, v in terms.items()}
 
     def semantic_steps(
-        self, steps: int, lr: float | None = None, rays_per_step: int | None = None
+        self,
+        steps: int,
+        lr: float | None = None,
+        rays_per_step: int | None = None,
+        on_step: Callable[[int], None] | None = None,
     ) -> float:
         """``steps`` Adam steps on the semantic head alone (fresh Adam, constant ``lr``, default
         the config's), samples placed like rendered labels' (``SemanticNerf.render_sampler``),
         rays drawn uniformly from every view or label-stratified with their weights as in
         :meth:`step` (``optim.semantic_ray_batches``, by default as ``optim.ray_batches``:
         stratified when it is "class_balanced"), and weighted towards near views
-        with ``loss.semantic_depth_power``; returns the last loss."""
+        with ``loss.semantic_depth_power``; ``on_step(i)`` hears every step (what it raises
+        ends the steps); returns the last loss."""
         if self.rays.labels is None:
             raise ValueError("semantic steps need labels (RayBank.set_labels)")
         nerf, gen = self.nerf, self.generator
@@ -187,7 +195,7 @@ class NerfTrainer:
         sampler = nerf.render_sampler(with_depth=self.rays.has_depth, hole_estimate=False)
         n = rays_per_step or self.rays_per_step
         value = float("nan")
-        for _ in range(steps):
+        for i in range(steps):
             ids, ray_weight = self._draw_from_all(n, self.semantic_balanced)
             origins, dirs = self.rays.rays(ids)
             with torch.no_grad():
@@ -206,4 +214,6 @@ class NerfTrainer:
             loss.backward()
             opt.step()
             value = float(loss.detach())
+            if on_step is not None:
+                on_step(i)
         return value

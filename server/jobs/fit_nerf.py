@@ -92,7 +92,9 @@ def run(ctx: JobContext) -> None:
 
     config = preset(p["preset"])
     if p.get("rays_per_step"):
+        # A smaller fit (previews, tests) takes smaller semantic steps after it as well.
         config.optim.rays_per_step = p["rays_per_step"]
+        config.optim.semantic_rays_per_step = min(config.optim.semantic_rays_per_step, p["rays_per_step"])
     if p.get("occupancy_resolution"):
         config.sampler.occupancy_resolution = p["occupancy_resolution"]
     if p.get("log2_table_size"):

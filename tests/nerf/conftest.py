@@ -18,7 +18,8 @@ def tiny_config(steps: int = 40) -> NerfConfig:
     # Uniform draws and no semantic steps after the fit, so a fit stays about a second; the
     # preset's label-fusion draws and steps have tests of their own (tests/nerf/test_trainer.py).
     cfg.optim.ray_batches = "all"
-    cfg.optim.semantic_steps = 0
+    cfg.optim.semantic_steps, cfg.optim.semantic_rays_per_step = 0, 256
+    cfg.optim.semantic_lr_fraction = 1.0
     cfg.sampler.occupancy_resolution = 32
     cfg.sampler.march_steps = 192
     cfg.sampler.uniform_samples = cfg.sampler.importance_samples = 32

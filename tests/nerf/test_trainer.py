@@ -186,8 +186,8 @@ def test_the_budget_semantic_steps_run_inside_the_fit():
 def test_adaptation_budgets_draw_and_step_as_measured_not_as_the_fusion_preset():
     """``fast`` fuses labels with label-balanced draws and its own semantic steps at a tenth of
     the rate; a budget built on it draws as ``NerfBudget.ray_batches`` says (uniform unless
-    set), runs its own semantic steps (none by default) at the fit's final rate, and its
-    ``preset_overrides`` still come last."""
+    set), runs its own semantic steps (none by default) at the fit's starting rate
+    (``optim.lr``), and its ``preset_overrides`` still come last."""
     from csa_core.adapt.config import NerfBudget, cpu, paper, tiny
     from csa_core.adapt.pseudo_labels import nerf_config
     from csa_core.nerf.config import preset
@@ -223,7 +223,14 @@ def test_a_shortened_fit_keeps_its_share_of_semantic_steps(scene, monkeypatch):
     cfg = tiny_config(steps=100)
     cfg.optim.semantic_steps, cfg.optim.semantic_rays_per_step, cfg.optim.semantic_lr_fraction = 40, 64, 0.1
     fit_semantic_nerf(scene, "label-nyu40", cfg, steps=5, progress=False)
-    assert ran == [(2, {"lr": pytest.approx(cfg.optim.lr * 0.1), "rays_per_step": 64})]
+    assert len(ran) == 1 and ran[0][0] == 2
+    assert (ran[0][1]["lr"], ran[0][1]["rays_per_step"]) == (pytest.approx(cfg.optim.lr * 0.1), 64)
+    # The semantic steps report like the fit's steps (every 10 and the last): a cancel lands.
+    monkeypatch.undo()
+    heard: list[str] = []
+    cfg.optim.semantic_steps = 300  # 300 * 5 / 100 = 15 after the 5 fit steps
+    fit_semantic_nerf(scene, "label-nyu40", cfg, steps=5, progress=False, on_progress=lambda m, f: heard.append(m))
+    assert [m for m in heard if "semantic" in m] == ["NeRF semantic step 1/15", "NeRF semantic step 11/15", "NeRF semantic step 15/15"]
 
 
 def test_per_view_ray_batches_take_each_view_once_per_epoch(scene):
