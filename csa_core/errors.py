@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from numbers import Integral
 from pathlib import Path
 
 
@@ -12,3 +13,11 @@ class CSAInputError(ValueError):
         self.where = str(where)
         self.problem = problem
         super().__init__(f"{self.where}: {problem}")
+
+
+def check_seed(seed: object, field: str = "--seed") -> int:
+    """``seed`` as an int when it is a non-negative integer (numpy integers too, not bools),
+    else a :class:`CSAInputError` naming ``field``: the one seed check of the data generators."""
+    if isinstance(seed, bool) or not isinstance(seed, Integral) or seed < 0:
+        raise CSAInputError(field, f"must be a non-negative integer, got {seed!r}")
+    return int(seed)

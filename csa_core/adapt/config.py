@@ -65,9 +65,9 @@ class NerfBudget:
     ``ray_batches``: how the fit draws its rays (``OptimConfig.ray_batches``), and the
     semantic-head steps after the fit (``semantic_steps``, 0: none) draw theirs the same way,
     ``rays_per_step`` at a time at the fit's starting rate (``optim.lr``): the budget's,
-    whatever the NeRF preset says (``fast`` draws label-balanced rays and adds 300 semantic steps of its own for
-    label fusion alone; the adaptation budgets were measured without them,
-    benchmarks/RESULTS.md "Label-balanced ray draws").
+    whatever the NeRF preset says (``fast`` draws label-balanced rays and adds 300 semantic
+    steps of its own for label fusion alone; the adaptation budgets were measured without
+    them, benchmarks/RESULTS.md "Label-balanced ray draws").
 
     The remaining fields override the preset's numbers when set: ray batch, hash table size,
     levels and finest resolution, the semantic feature table's levels (``0``: the semantic

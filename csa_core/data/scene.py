@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from csa_core.data.camera import Intrinsics
+from csa_core.errors import CSAInputError
 
 # docs/method.md "Protocols and metrics": the first 80% of the kept frames are training views, the rest validation.
 TRAIN_FRACTION = 0.8
@@ -96,6 +97,19 @@ class Scene:
         if name == "all":
             return list(self.frames)
         raise ValueError(f"split: unknown split {name!r} (expected train, val or all)")
+
+
+def require_depth(scene: Scene, needs: str) -> str:
+    """Where to name ``scene`` in errors (its folder, else its name), after refusing a scene
+    without frames or with a frame without depth: ``needs`` says what needs it ("space
+    labels need depth")."""
+    where = str(scene.root) if scene.root else f"scene {scene.name}"
+    if not scene.frames:
+        raise CSAInputError(where, "scene has no frames")
+    missing = [f.name for f in scene.frames if f.depth is None]
+    if missing:
+        raise CSAInputError(where, f"{needs}; frame(s) {', '.join(missing[:5])} have none")
+    return where
 
 
 def split_point(n: int) -> int:

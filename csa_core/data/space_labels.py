@@ -69,8 +69,8 @@ import numpy as np
 
 from csa_core.data.camera import Intrinsics
 from csa_core.data.nyu40 import class_id
-from csa_core.data.scene import NYU40_FOLDER, Frame, Scene
-from csa_core.errors import CSAInputError
+from csa_core.data.scene import NYU40_FOLDER, Frame, Scene, require_depth
+from csa_core.errors import CSAInputError, check_seed
 
 WALL, FLOOR, CEILING = class_id("wall"), class_id("floor"), class_id("ceiling")
 
@@ -504,16 +504,8 @@ def fit_space_labelling(
     """The labelling of space of ``scene`` for ``seed``, from its depth and poses only (module
     docstring)."""
     cfg = config or SpaceLabelConfig()
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-        raise CSAInputError("--seed", f"must be a non-negative integer, got {seed!r}")
-    where = scene.root or f"scene {scene.name}"
-    if not scene.frames:
-        raise CSAInputError(where, "scene has no frames")
-    missing = [f.name for f in scene.frames if f.depth is None]
-    if missing:
-        raise CSAInputError(
-            where, f"space labels need depth; frame(s) {', '.join(missing[:5])} have none"
-        )
+    check_seed(seed)
+    where = require_depth(scene, "space labels need depth")
     points, normals = fuse_points(scene, cfg)
     if len(points) == 0:
         raise CSAInputError(where, "no frame has any depth: nothing to label")

@@ -243,9 +243,8 @@ def _fast() -> NerfConfig:
 
     For label fusion: label-balanced ray draws (rare classes get their geometry and labels
     fitted within the budget) and then 300 semantic-head steps of 8192 rays at a tenth of the
-    rate (about two thirds of a pass over every training pixel's label at 200 views of 160x120, on the
-    finished geometry).
-    Measured against the voxel map on every synthetic family, clean and hard, and the real
+    rate (about two thirds of a pass over every training pixel's label at 200 views of 160x120,
+    on the finished geometry). Measured against the voxel map on every synthetic family, clean and hard, and the real
     7-Scenes kitchen: benchmarks/RESULTS.md "The `fast` preset for label fusion". The
     adaptation budgets (``csa_core.adapt.config``) set their own draws and semantic steps."""
     return NerfConfig(

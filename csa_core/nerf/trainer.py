@@ -82,10 +82,12 @@ class NerfTrainer:
         # (joint training sets its labels later) draws uniformly throughout. The semantic-head
         # steps follow the fit's draws unless optim.semantic_ray_batches says.
         labelled = rays.labels is not None
-        self.balanced = o.ray_batches == "class_balanced" and labelled
+        fit_balanced = o.ray_batches == "class_balanced"
         semantic = o.semantic_ray_batches
-        fit_way = o.ray_batches == "class_balanced"
-        self.semantic_balanced = labelled and (fit_way if semantic is None else semantic == "class_balanced")
+        self.balanced = labelled and fit_balanced
+        self.semantic_balanced = labelled and (
+            fit_balanced if semantic is None else semantic == "class_balanced"
+        )
         power = nerf.config.loss.semantic_depth_power
         if not (math.isfinite(power) and power >= 0):
             raise ValueError(f"loss.semantic_depth_power must be finite and >= 0, got {power}")

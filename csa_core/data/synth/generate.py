@@ -17,7 +17,7 @@ from csa_core.data.synth.families import RoomFamily, get_family
 from csa_core.data.synth.layout import Room, build_room
 from csa_core.data.synth.lighting import place_lights
 from csa_core.data.synth.render import FrameRenderer, build_model
-from csa_core.errors import CSAInputError
+from csa_core.errors import CSAInputError, check_seed
 
 MIN_SIDE_PX, MAX_SIDE_PX = 16, 4096
 MAX_FRAMES = 100_000
@@ -27,8 +27,7 @@ LAYOUT_TRIES = 8
 def _check(frames: int, size: tuple[int, int], seed: int) -> tuple[int, int]:
     if isinstance(frames, bool) or not isinstance(frames, int | np.integer) or frames < 1 or frames > MAX_FRAMES:
         raise CSAInputError("--frames", f"must be an integer between 1 and {MAX_FRAMES}, got {frames!r}")
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-        raise CSAInputError("--seed", f"must be a non-negative integer, got {seed!r}")
+    check_seed(seed)
     try:
         w, h = (int(v) for v in size)
     except (TypeError, ValueError):

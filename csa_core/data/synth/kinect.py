@@ -32,9 +32,9 @@ import numpy as np
 
 from csa_core.data.camera import Intrinsics
 from csa_core.data.label_noise import LabelNoiseConfig, corrupt_labels
-from csa_core.data.scene import NYU40_FOLDER, Frame, Scene
+from csa_core.data.scene import NYU40_FOLDER, Frame, Scene, require_depth
 from csa_core.data.synth.noise import hash01, value_noise3
-from csa_core.errors import CSAInputError
+from csa_core.errors import CSAInputError, check_seed
 
 NOISY_FOLDER = "label-noisy"
 REFERENCE_WIDTH = 640  # pixel sizes in the config are given at the Kinect's 640x480
@@ -316,12 +316,6 @@ def degrade_frame(
     )
 
 
-def _check_seed(seed: int) -> int:
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-        raise CSAInputError("--seed", f"must be a non-negative integer, got {seed!r}")
-    return int(seed)
-
-
 def degrade_scene(
     scene: Scene,
     seed: int = 0,
@@ -333,16 +327,8 @@ def degrade_scene(
     colour, and ``target`` labels made from ``source`` with systematic and per-frame errors
     (``source=None``: colour and depth only). Other label folders are copied unchanged."""
     cfg = config or KinectConfig()
-    seed = _check_seed(seed)
-    where = scene.root or f"scene {scene.name}"
-    if not scene.frames:
-        raise CSAInputError(where, "scene has no frames")
-    missing_depth = [f.name for f in scene.frames if f.depth is None]
-    if missing_depth:
-        raise CSAInputError(
-            where,
-            f"a Kinect-like capture needs depth; frame(s) {', '.join(missing_depth[:5])} have none",
-        )
+    seed = check_seed(seed)
+    where = require_depth(scene, "a Kinect-like capture needs depth")
     classes = np.zeros(0, dtype=np.int64)
     if source is not None:
         if source == target:
