@@ -61,6 +61,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         services = open_services(settings)
         services.api_keys = resolve_api_keys(settings)
         app.state.services = services
+        with services.sessions() as session:
+            swept = services.store.sweep_unrecorded(session, settings.orphan_blob_grace_seconds)
+        if swept:
+            log.info("deleted %d unrecorded artifact files older than %.0f s", len(swept), settings.orphan_blob_grace_seconds)
         device = None if settings.device == "auto" else settings.device
         app.state.model_cache = ModelCache(services.store, settings.model_cache_size, device)
         app.state.nerf_cache = NerfCache(services.store, settings.model_cache_size, device)

@@ -4,6 +4,12 @@ A file is stored under ``blobs/<sha[:2]>/<sha>``; it is written to a temporary n
 and renamed into place, so a crash never leaves a half-written blob under a checksum name.
 Storing the same bytes twice is a no-op. The ``artifacts`` table records each blob's sha256,
 size and kind; :meth:`ArtifactStore.verify` re-hashes the files against it.
+
+A blob is written before the transaction that records it commits; when that transaction fails
+(a concurrent upload, a deleted scene, a dead process) the file stays unrecorded.
+:meth:`ArtifactStore.sweep_unrecorded` deletes such files (and stale ``tmp/*.part`` files) once
+they are older than a grace period; storing bytes that already exist refreshes the file's
+modification time, so a blob an open transaction is about to record is never swept.
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ import hashlib
 import os
 import shutil
 import tempfile
+import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,6 +77,7 @@ class ArtifactStore:
         dest = self.path_of(sha)
         if dest.is_file() and dest.stat().st_size == tmp.stat().st_size:
             tmp.unlink(missing_ok=True)
+            os.utime(dest)  # put again: not an orphan for another grace period
             return
         dest.parent.mkdir(parents=True, exist_ok=True)
         os.replace(tmp, dest)
@@ -172,6 +180,25 @@ class ArtifactStore:
                 session.delete(art)
                 removed.append(art.sha256)
         session.flush()
+        return removed
+
+    def sweep_unrecorded(self, session: Session, older_than_s: float) -> list[str]:
+        """Delete blob files that no artifact row records and ``tmp/`` files, when last written
+        more than ``older_than_s`` seconds ago (a younger one may belong to a transaction still
+        open); returns the deleted files' names. These are the leftovers of transactions that
+        failed after writing their blobs."""
+        cutoff = time.time() - older_than_s
+        recorded = set(session.scalars(select(Artifact.sha256)))
+        removed: list[str] = []
+        candidates = [p for d in (self.root / "blobs").iterdir() if d.is_dir() for p in d.iterdir() if p.name not in recorded]
+        candidates += list((self.root / "tmp").iterdir())
+        for path in candidates:
+            try:
+                if path.is_file() and path.stat().st_mtime < cutoff:
+                    path.unlink()
+                    removed.append(path.name)
+            except FileNotFoundError:  # another process swept it first
+                continue
         return removed
 
     def remove_unrecorded(self, session: Session, shas: Iterable[str]) -> None:

@@ -8,6 +8,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 from sqlalchemy.orm import Session
 
+from server.errors import invalid
 from server.services import Services
 
 
@@ -27,3 +28,18 @@ def get_db(services: Annotated[Services, Depends(get_services)]) -> Iterator[Ses
 
 ServicesDep = Annotated[Services, Depends(get_services)]
 DbDep = Annotated[Session, Depends(get_db)]
+
+
+def form_parts(*names: str):
+    """A dependency that refuses a multipart form carrying a part this route does not read
+    (422 naming it and the parts it takes): FastAPI would drop it silently, so a misspelt
+    optional part (``label`` for ``labels``) would store a frame without its labels."""
+    allowed = frozenset(names)
+
+    async def check(request: Request) -> None:
+        form = await request.form()  # parsed once per request; the route's File/Form reuse it
+        unknown = sorted({key for key in form.keys() if key not in allowed})
+        if unknown:
+            raise invalid(unknown[0], f"unknown form part (this route takes {', '.join(sorted(allowed))})")
+
+    return Depends(check)

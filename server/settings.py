@@ -38,6 +38,7 @@ class Settings(BaseSettings):
     max_image_pixels: int = 4096 * 4096
     max_model_upload_bytes: int = 1024 * MiB
     max_inference_upload_bytes: int = 32 * MiB
+    orphan_blob_grace_seconds: float = 3600.0  # unrecorded blob files older than this are deleted (at start, on scene deletion)
 
     # Jobs: where they run (docs/architecture.md, "Executors").
     executor: Literal["embedded", "ray"] = "embedded"  # embedded: in this process; ray: on a Ray cluster

@@ -70,4 +70,5 @@ def delete_scene(scene_ref: str, db: DbDep, services: ServicesDep) -> Response:
     removed = services.store.collect_garbage(db)
     db.commit()
     services.store.remove_unrecorded(db, removed)
+    services.store.sweep_unrecorded(db, services.settings.orphan_blob_grace_seconds)
     return Response(status_code=status.HTTP_204_NO_CONTENT)

@@ -406,3 +406,113 @@ def test_jobs_at_the_frames_size_or_smaller_are_queued(http: httpx.Client, scene
         r = http.post("/api/v1/jobs", json=body)
         assert r.status_code == 202, r.text[:300]
         assert http.post(f"/api/v1/jobs/{r.json()['id']}/cancel").json()["status"] == "cancelled"
+
+
+# --- form parts a route does not read ----------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("route", "files", "data", "field"),
+    [
+        ("frames", {"label": labels()}, {}, "label"),
+        ("frames", {}, {"nmae": "7"}, "nmae"),
+        ("archive", {"archive": b"not read"}, {"overwrite": "true"}, "overwrite"),
+        ("models", {"checkpoint": b"not read"}, {"name": "m", "current": "true"}, "current"),
+        ("predict", {"image": color()}, {"modle": "x"}, "modle"),
+    ],
+    ids=["misspelt-labels", "misspelt-name", "archive-extra", "model-extra", "predict-extra"],
+)
+def test_form_parts_a_route_does_not_read_are_refused(http: httpx.Client, route: str, files: dict, data: dict, field: str) -> None:
+    """FastAPI drops an unknown part silently: a frame uploaded with ``label`` (for
+    ``labels``) would be stored without its labels. Every multipart route names the part."""
+    scene = new_scene(http)
+    if route == "frames":
+        files = {"color": color(), "depth": depth(), "pose": POSE.encode(), "intrinsics": K.encode()} | files
+        url = f"/api/v1/scenes/{scene}/frames"
+    else:
+        url = {"archive": f"/api/v1/scenes/{scene}/archive", "models": "/api/v1/models", "predict": "/api/v1/predict"}[route]
+    r = http.post(url, files={k: (k, v, "application/octet-stream") for k, v in files.items()}, data=data)
+    refused(r, 422, field, "unknown form part")
+    assert frame_count(http, scene) == 0
+
+
+def test_known_form_parts_still_store_the_frame(http: httpx.Client) -> None:
+    """The other side: every part the frame route documents is accepted together."""
+    scene = new_scene(http)
+    r = http.post(
+        f"/api/v1/scenes/{scene}/frames",
+        files={k: (k, v, "application/octet-stream") for k, v in {"color": color(), "depth": depth(), "pose": POSE.encode(), "intrinsics": K.encode(), "depth_intrinsics": K.encode(), "labels": labels()}.items()},
+        data={"name": "0", "replace": "false"},
+    )
+    assert r.status_code == 201, r.text[:300]
+    assert http.get(f"/api/v1/scenes/{scene}/frames/0/labels").status_code == 200
+
+
+# --- blobs left behind by a transaction that failed ----------------------------------------
+
+
+def test_blobs_of_a_failed_transaction_are_swept_after_the_grace_period(http: httpx.Client, api_server: LiveServer, monkeypatch) -> None:
+    """The frame's files are written before its row commits; when the commit fails they stay
+    on disk unrecorded. The sweep deletes them once older than the grace period and never
+    touches a recorded blob or a young one (an open transaction may be about to record it)."""
+    import os
+    import time
+
+    from sqlalchemy.orm import Session
+
+    scene = new_scene(http)
+    assert upload_frame(http, scene, "0").status_code == 201
+    store = api_server.services.store
+    blobs = lambda: {p.name for d in (store.root / "blobs").iterdir() for p in d.iterdir()}  # noqa: E731
+    before = blobs()
+
+    def fail(self, *args, **kwargs):
+        raise RuntimeError("the database went away")
+
+    monkeypatch.setattr(Session, "commit", fail)
+    r = upload_frame(http, scene, "1", color=color(seed=11))
+    monkeypatch.undo()
+    assert r.status_code == 500 and frame_count(http, scene) == 1
+    orphans = blobs() - before
+    assert len(orphans) == 1  # the new colour image (depth and pose equal frame 0's)
+    with api_server.services.sessions() as session:
+        assert store.sweep_unrecorded(session, older_than_s=3600) == []  # young: kept
+        (orphan,) = orphans
+        path = store.path_of(orphan)
+        old = time.time() - 7200
+        os.utime(path, (old, old))
+        frame0 = http.get(f"/api/v1/scenes/{scene}/frames/0").json()
+        for recorded in (frame0["color_sha256"], frame0["depth_sha256"]):  # kept however old
+            os.utime(store.path_of(recorded), (old, old))
+        assert store.sweep_unrecorded(session, older_than_s=3600) == [orphan]
+    assert blobs() == before
+    assert http.get(f"/api/v1/scenes/{scene}/frames/0/color").status_code == 200
+
+
+def test_putting_existing_bytes_again_refreshes_the_grace_period(tmp_path: Path) -> None:
+    """An upload whose bytes are already on disk (unrecorded, old) is about to record them:
+    the put makes the file young again so a concurrent sweep keeps it."""
+    import os
+    import time
+
+    from sqlalchemy import create_engine
+    from sqlalchemy.orm import Session
+
+    from server.artifacts import ArtifactStore
+    from server.db.models import Base
+
+    store = ArtifactStore(tmp_path / "store")
+    engine = create_engine(f"sqlite:///{tmp_path / 'db.sqlite'}")
+    Base.metadata.create_all(engine)
+    with Session(engine) as session:
+        stored = store.put_bytes(session, b"frame bytes", "color")
+        session.rollback()  # the transaction failed: the blob is unrecorded
+        old = time.time() - 7200
+        os.utime(store.path_of(stored.sha256), (old, old))
+        (store.root / "tmp" / "crashed.part").write_bytes(b"half")
+        os.utime(store.root / "tmp" / "crashed.part", (old, old))
+        store.put_bytes(session, b"frame bytes", "color")  # a second upload of the same bytes
+        assert store.sweep_unrecorded(session, older_than_s=3600) == ["crashed.part"]
+        session.commit()
+        assert store.path_of(stored.sha256).is_file()
+    engine.dispose()
