@@ -183,7 +183,8 @@ class NerfTrainer:
         on_step: Callable[[int], None] | None = None,
     ) -> float:
         """``steps`` Adam steps on the semantic head alone (fresh Adam, constant ``lr``, default
-        the config's), samples placed like rendered labels' (``SemanticNerf.render_sampler``),
+        the config's), samples placed like rendered labels' (``SemanticNerf.render_sampler``,
+        holes in the depth included),
         rays drawn uniformly from every view or label-stratified with their weights as in
         :meth:`step` (``optim.semantic_ray_batches``, by default as ``optim.ray_batches``:
         stratified when it is "class_balanced"), and weighted towards near views
@@ -193,8 +194,11 @@ class NerfTrainer:
             raise ValueError("semantic steps need labels (RayBank.set_labels)")
         nerf, gen = self.nerf, self.generator
         opt = make_adam(nerf.semantic_parameter_groups(), lr or nerf.config.optim.lr, nerf)
-        # Rays in depth holes march as they always did (the estimate is for rendering only).
-        sampler = nerf.render_sampler(with_depth=self.rays.has_depth, hole_estimate=False)
+        # Rays in depth holes sample the way their labels render: in the band around the
+        # occupancy grid's surface estimate where the config's ``render_hole_estimate`` is on
+        # (marching them cost hard scenes 2-3x the clean scenes' semantic steps:
+        # benchmarks/RESULTS.md, "Semantic steps in depth holes").
+        sampler = nerf.render_sampler(with_depth=self.rays.has_depth)
         n = rays_per_step or self.rays_per_step
         value = float("nan")
         for i in range(steps):

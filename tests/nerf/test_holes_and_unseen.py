@@ -206,20 +206,37 @@ def test_hole_labels_agree_with_the_full_march_on_a_fitted_scene(tiny_nerf, tiny
     assert agree / total > 0.9, agree / total
 
 
-def test_semantic_steps_keep_marching_the_holes(tiny_nerf, tiny_scene):
-    """Training samples never change: the semantic steps' sampler has no estimate."""
-    nerf = copy.deepcopy(tiny_nerf)
-    real, made = nerf.render_sampler, []
+def test_semantic_steps_sample_holes_as_labels_render(tiny_nerf, tiny_scene):
+    """The semantic steps place samples the way labels are rendered: rays in depth holes in
+    the band around the grid's surface estimate when ``render_hole_estimate`` is on (the
+    band's few samples where it finds a surface), marched along the ray when it is off."""
+    frames = copy.deepcopy(tiny_scene.train_frames[:2])
+    for f in frames:
+        f.depth = _with_holes(f.depth)
+    rays = RayBank(frames, tiny_scene.intrinsics, label_folder="label-nyu40")
+    hole = torch.nonzero(rays.depth == 0).squeeze(-1)[:64]
+    assert hole.numel() == 64
+    origins, dirs = rays.rays(hole)
+    per_ray = {}
+    for estimate in (True, False):
+        nerf = copy.deepcopy(tiny_nerf)
+        nerf.config.sampler.render_hole_estimate = estimate
+        real, made = nerf.render_sampler, []
 
-    def spy(*args, **kw):
-        made.append(real(*args, **kw))
-        return made[-1]
+        def spy(*args, real=real, made=made, **kw):
+            made.append(real(*args, **kw))
+            return made[-1]
 
-    nerf.render_sampler = spy
-    rays = RayBank(tiny_scene.train_frames[:2], tiny_scene.intrinsics, label_folder="label-nyu40")
-    NerfTrainer(nerf, rays, schedule_steps=1).semantic_steps(1, rays_per_step=32)
-    assert len(made) == 1 and isinstance(made[0], DepthGuidedSampler)
-    assert made[0].estimate is None
+        nerf.render_sampler = spy
+        NerfTrainer(nerf, rays, schedule_steps=1).semantic_steps(1, rays_per_step=32)
+        assert len(made) == 1 and isinstance(made[0], DepthGuidedSampler)
+        assert (made[0].estimate is not None) == estimate
+        with torch.no_grad():
+            samples = nerf.sample(origins, dirs, made[0], depth=rays.depth[hole])
+        per_ray[estimate] = torch.bincount(samples.ray_indices, minlength=64)
+    band = tiny_nerf.config.sampler.render_band_samples
+    assert float((per_ray[True] == band).float().mean()) > 0.75  # a surface found: the band
+    assert int(per_ray[True].sum()) < int(per_ray[False].sum())  # fewer than the march
 
 
 # -- unseen surfaces -----------------------------------------------------------------------
