@@ -30,16 +30,16 @@ ServicesDep = Annotated[Services, Depends(get_services)]
 DbDep = Annotated[Session, Depends(get_db)]
 
 
-def form_parts(*names: str):
-    """A dependency that refuses a multipart form carrying a part this route does not read
-    (422 naming it and the parts it takes): FastAPI would drop it silently, so a misspelt
-    optional part (``label`` for ``labels``) would store a frame without its labels."""
-    allowed = frozenset(names)
+async def refuse_unknown_form_parts(request: Request) -> None:
+    """Refuse a multipart form carrying a part the route does not read (422 naming it and the
+    parts the route takes, read from the route's own parameters): FastAPI would drop it
+    silently, so a misspelt optional part (``label`` for ``labels``) would store a frame
+    without its labels."""
+    allowed = {param.alias for param in request.scope["route"].dependant.body_params}
+    form = await request.form()  # parsed once per request; the route's File/Form reuse it
+    unknown = sorted(key for key in form.keys() if key not in allowed)
+    if unknown:
+        raise invalid(unknown[0], f"unknown form part (this route takes {', '.join(sorted(allowed))})")
 
-    async def check(request: Request) -> None:
-        form = await request.form()  # parsed once per request; the route's File/Form reuse it
-        unknown = sorted({key for key in form.keys() if key not in allowed})
-        if unknown:
-            raise invalid(unknown[0], f"unknown form part (this route takes {', '.join(sorted(allowed))})")
 
-    return Depends(check)
+FormPartsChecked = Depends(refuse_unknown_form_parts)

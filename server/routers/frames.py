@@ -17,7 +17,7 @@ from csa_core.data.image_files import COLOR_EXTS
 from csa_core.data.scene_io import frame_names
 from server.archives import ArchiveLimits, UnsafeArchive, extract_archive
 from server.db.models import Frame, Scene
-from server.deps import DbDep, ServicesDep, form_parts
+from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import APIError, invalid, not_found, too_large
 from server.frame_store import digest_of, next_frame_name, scene_camera, store_frame
 from server.frame_validation import (
@@ -88,7 +88,7 @@ def _store_with_retry(db, services, scene: Scene, name: str, valid, replace: boo
     response_model=FrameUploadOut,
     status_code=status.HTTP_201_CREATED,
     summary="upload one posed RGB-D frame (idempotent: the same content again changes nothing)",
-    dependencies=[form_parts("color", "depth", "pose", "intrinsics", "depth_intrinsics", "labels", "name", "replace")],
+    dependencies=[FormPartsChecked],
 )
 async def upload_frame(
     scene_ref: str,
@@ -200,7 +200,7 @@ def _read_member(path: Path, field: str, limit: int) -> bytes:
     "/archive",
     response_model=ArchiveUploadOut,
     summary="upload a scene folder as a tar or zip archive (all frames or none)",
-    dependencies=[form_parts("archive", "replace")],
+    dependencies=[FormPartsChecked],
 )
 async def upload_archive(
     scene_ref: str,

@@ -15,7 +15,7 @@ from csa_core.data import image_files
 from csa_core.data.label_images import colorize
 from csa_core.errors import CSAInputError
 from server import capabilities
-from server.deps import DbDep, ServicesDep, form_parts
+from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import invalid, not_available, too_large
 from server.image_headers import image_format, image_size
 from server.lookups import get_model
@@ -37,7 +37,7 @@ def _png(img: np.ndarray) -> bytes:
     response_class=Response,
     responses={200: {"content": {"image/png": {}}, "description": "uint8 NYU40 ids (format=ids) or the palette picture (format=color)"}},
     summary="label an RGB image with the current or a named model version",
-    dependencies=[form_parts("image", "model", "format")],
+    dependencies=[FormPartsChecked],
 )
 async def predict(
     request: Request,

@@ -19,7 +19,7 @@ from csa_core.data.camera import parse_size
 from csa_core.errors import CSAInputError
 from server import capabilities
 from server.db.models import Evaluation, ModelVersion, Scene
-from server.deps import DbDep, ServicesDep, form_parts
+from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import conflict, invalid, not_available, too_large
 from server.lookups import get_model
 from server.registry import checkpoint_sha, register_checkpoint, set_current
@@ -92,7 +92,7 @@ def _checked_card(path: Path, max_pixels: int):
     status_code=status.HTTP_201_CREATED,
     responses={409: ERROR_RESPONSES[422], 413: ERROR_RESPONSES[422], 501: ERROR_RESPONSES[422]},
     summary="register a segmentation checkpoint (safetensors with a CSA model card) as a new lineage root",
-    dependencies=[form_parts("checkpoint", "name", "lineage", "make_current")],
+    dependencies=[FormPartsChecked],
 )
 async def register_model(
     db: DbDep,
