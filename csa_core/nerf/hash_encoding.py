@@ -59,17 +59,16 @@ def level_resolutions(cfg: HashEncodingConfig) -> list[int]:
 
 
 class _HashGather(torch.autograd.Function):
-    """Weighted gather of table rows for idx, w ``(L, 8, N)``:
-    ``out[l, i] = sum_k w[l, k, i] * table[idx[l, k, i]]`` -> ``(L, N, F)``."""
+    """Weighted gather of table rows for idx, w ``(L, N, 8)``:
+    ``out[l, i] = sum_k w[l, i, k] * table[idx[l, i, k]]`` -> ``(L, N, F)``."""
 
     @staticmethod
     def forward(ctx, table: Tensor, idx: Tensor, w: Tensor) -> Tensor:
         ctx.save_for_backward(idx, w)
         ctx.num_rows = table.shape[0]
-        levels, _, n = idx.shape
-        bags = idx.transpose(1, 2).reshape(levels * n, 8)
+        levels, n, _ = idx.shape
         out = F.embedding_bag(
-            bags, table, per_sample_weights=w.transpose(1, 2).reshape(levels * n, 8), mode="sum"
+            idx.reshape(levels * n, 8), table, per_sample_weights=w.reshape(levels * n, 8), mode="sum"
         )
         return out.view(levels, n, -1)
 
@@ -81,9 +80,9 @@ class _HashGather(torch.autograd.Function):
             # Two features scatter as one complex64 number: ~3x faster than a 2-column index_add_.
             gc = torch.view_as_complex(grad.contiguous())  # L N
             g = torch.zeros(ctx.num_rows, dtype=torch.complex64, device=grad.device)
-            g.index_add_(0, flat, (gc.unsqueeze(1) * w).reshape(-1))
+            g.index_add_(0, flat, (gc.unsqueeze(-1) * w).reshape(-1))
             return torch.view_as_real(g), None, None
-        src = w.unsqueeze(-1) * grad.unsqueeze(1)  # L 8 N F
+        src = w.unsqueeze(-1) * grad.unsqueeze(2)  # L N 8 F
         g = torch.zeros(ctx.num_rows, grad.shape[-1], dtype=grad.dtype, device=grad.device)
         g.index_add_(0, flat, src.reshape(-1, grad.shape[-1]))
         return g, None, None
@@ -135,8 +134,9 @@ class HashEncoding(nn.Module):
         return self.cfg.num_levels * self.cfg.features_per_level
 
     def corners(self, x: Tensor, levels: int | None = None) -> tuple[Tensor, Tensor]:
-        """Table rows and trilinear weights of the 8 cell corners, each ``(L, 8, N)``, of every
-        level or of the first ``levels`` (compiled with ``HashEncodingConfig.compile``)."""
+        """Table rows and trilinear weights of the 8 cell corners, each ``(L, N, 8)`` (the bags
+        of ``embedding_bag``, one per level and sample), of every level or of the first
+        ``levels`` (compiled with ``HashEncodingConfig.compile``)."""
         if self.cfg.compile and x.shape[0] > 0 and _compiled_corners() is not None:
             try:
                 return _compiled_corners()(self, x, levels)
@@ -148,9 +148,11 @@ class HashEncoding(nn.Module):
     def corners_eager(self, x: Tensor, levels: int | None = None) -> tuple[Tensor, Tensor]:
         """:meth:`corners` in plain PyTorch (the reference for the compiled version).
 
-        Level-major, sample-minor layout: every broadcast runs over a contiguous inner
+        Computed level-major, sample-minor: every broadcast runs over a contiguous inner
         dimension of N samples (several times faster on CPU than a trailing corner dimension)
-        and the dense and hashed level groups join by plain concatenation.
+        and the dense and hashed level groups join by plain concatenation. One transposition
+        at the end gives the bag layout, which every table then reads without copying
+        (benchmarks/RESULTS.md, "Fewer band samples and one corner layout").
         """
         levels = self.cfg.num_levels if levels is None else min(levels, self.cfg.num_levels)
         res = self.resolutions[:levels].view(-1, 1, 1)
@@ -184,7 +186,9 @@ class HashEncoding(nn.Module):
             )
             hashed &= self._hash_mask
             hashed += self._offsets[nd:levels].view(-1, 1, 1, 1, 1)
-        return rows.reshape(levels, 8, n), weights.reshape(levels, 8, n)  # n, not -1: n may be 0
+        # n, not -1: n may be 0
+        rows = rows.reshape(levels, 8, n).transpose(1, 2).contiguous()
+        return rows, weights.reshape(levels, 8, n).transpose(1, 2).contiguous()
 
     def level_rows(self, levels: int) -> int:
         """Number of table rows used by the first ``levels`` levels (their blocks come first)."""
@@ -220,10 +224,10 @@ class HashEncoding(nn.Module):
         """Features ``(N, L * F)`` of ``table`` (default: this encoding's) at corners from
         :meth:`corners` (``L`` levels, the table laid out like this one's first ``L`` levels)."""
         table = self.table if table is None else table
-        if rows.shape[-1] == 0:
+        if rows.shape[1] == 0:
             return table.new_zeros(0, rows.shape[0] * table.shape[1])
         out = _HashGather.apply(table, rows, weights.to(table.dtype))
-        return out.transpose(0, 1).reshape(rows.shape[-1], -1)
+        return out.transpose(0, 1).reshape(rows.shape[1], -1)
 
 
 _COMPILED: dict[str, object] = {}

@@ -136,12 +136,16 @@ class SemanticNerf(nn.Module):
         return self.make_sampler(kind, training=True)
 
     def render_sampler(
-        self, with_depth: bool = False, hole_estimate: bool | None = None
+        self,
+        with_depth: bool = False,
+        hole_estimate: bool | None = None,
+        band_samples: int | None = None,
     ) -> RaySampler:
         """The config's render sampler; for views ``with_depth`` and ``render_depth_guided``,
-        samples in the band around the measured depth, and for rays without one in the band
-        around an estimated depth where ``hole_estimate`` (default: the config's
-        ``render_hole_estimate``) finds a surface, the render sampler for the rest."""
+        ``band_samples`` (default: the config's ``render_band_samples``) samples in the band
+        around the measured depth, and for rays without one in the band around an estimated
+        depth where ``hole_estimate`` (default: the config's ``render_hole_estimate``) finds a
+        surface, the render sampler for the rest."""
         s = self.config.sampler
         fallback = self.make_sampler(s.render)
         if with_depth and s.render_depth_guided:
@@ -153,7 +157,7 @@ class SemanticNerf(nn.Module):
                 else None
             )
             return DepthGuidedSampler(
-                s.render_band_samples,
+                s.render_band_samples if band_samples is None else band_samples,
                 0,
                 s.depth_band,
                 s.depth_band_fraction,

@@ -184,7 +184,7 @@ class NerfTrainer:
     ) -> float:
         """``steps`` Adam steps on the semantic head alone (fresh Adam, constant ``lr``, default
         the config's), samples placed like rendered labels' (``SemanticNerf.render_sampler``,
-        holes in the depth included),
+        holes in the depth included) but as many in the band as the fit's (``band_samples``),
         rays drawn uniformly from every view or label-stratified with their weights as in
         :meth:`step` (``optim.semantic_ray_batches``, by default as ``optim.ray_batches``:
         stratified when it is "class_balanced"), and weighted towards near views
@@ -198,7 +198,13 @@ class NerfTrainer:
         # occupancy grid's surface estimate where the config's ``render_hole_estimate`` is on
         # (marching them cost hard scenes 2-3x the clean scenes' semantic steps:
         # benchmarks/RESULTS.md, "Semantic steps in depth holes").
-        sampler = nerf.render_sampler(with_depth=self.rays.has_depth)
+        # As many band samples as the fit's steps, not the render's: with the render's 6
+        # (``fast``) the hard variants' labels came out 0.2-0.7 lower, rendering 6 from a head
+        # trained on 8 cost at most 0.2 (benchmarks/RESULTS.md, "Fewer band samples and one
+        # corner layout").
+        sampler = nerf.render_sampler(
+            with_depth=self.rays.has_depth, band_samples=nerf.config.sampler.band_samples
+        )
         n = rays_per_step or self.rays_per_step
         value = float("nan")
         for i in range(steps):

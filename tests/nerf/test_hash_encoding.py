@@ -68,10 +68,11 @@ def test_matches_direct_implementation_on_dense_and_hashed_levels():
     torch.testing.assert_close(got, _reference_encoding(enc, x), rtol=1e-5, atol=1e-5)
 
 
-def test_backward_scatters_into_the_touched_rows():
+@pytest.mark.parametrize("features", [2, 3])  # 2: the complex scatter; 3: the general one
+def test_backward_scatters_into_the_touched_rows(features):
     cfg = HashEncodingConfig(
         num_levels=4,
-        features_per_level=2,
+        features_per_level=features,
         log2_table_size=12,
         base_resolution=4,
         finest_resolution=128,
@@ -83,7 +84,8 @@ def test_backward_scatters_into_the_touched_rows():
     # Autograd through a plain gather gives the same gradient.
     rows, weights = enc.corners(x)
     table = enc.table.detach().clone().requires_grad_()
-    plain = (table[rows] * weights[..., None]).sum(1).transpose(0, 1).reshape(20, -1)
+    assert rows.shape == weights.shape == (4, 20, 8)  # (levels, samples, corners)
+    plain = (table[rows] * weights[..., None]).sum(2).transpose(0, 1).reshape(20, -1)
     (plain * w).sum().backward()
     torch.testing.assert_close(enc.table.grad, table.grad, rtol=1e-5, atol=1e-6)
     assert enc.table.grad.abs().sum() > 0
@@ -164,7 +166,7 @@ def test_zero_positions_give_empty_features_with_gradients():
     enc = HashEncoding(HashEncodingConfig(num_levels=4, log2_table_size=10, finest_resolution=64))
     x = torch.zeros(0, 3)
     rows, weights = enc.corners(x)
-    assert rows.shape == weights.shape == (4, 8, 0)
+    assert rows.shape == weights.shape == (4, 0, 8)
     assert enc.interpolate(rows, weights).shape == (0, enc.out_dim)
     extra = torch.zeros(enc.level_rows(2), 3)
     feats, more = enc(x, extra, 2)

@@ -209,7 +209,8 @@ def test_hole_labels_agree_with_the_full_march_on_a_fitted_scene(tiny_nerf, tiny
 def test_semantic_steps_sample_holes_as_labels_render(tiny_nerf, tiny_scene):
     """The semantic steps place samples the way labels are rendered: rays in depth holes in
     the band around the grid's surface estimate when ``render_hole_estimate`` is on (the
-    band's few samples where it finds a surface), marched along the ray when it is off."""
+    band's few samples where it finds a surface), marched along the ray when it is off. The
+    band holds the fit's ``band_samples``, not the render's ``render_band_samples``."""
     frames = copy.deepcopy(tiny_scene.train_frames[:2])
     for f in frames:
         f.depth = _with_holes(f.depth)
@@ -221,6 +222,8 @@ def test_semantic_steps_sample_holes_as_labels_render(tiny_nerf, tiny_scene):
     for estimate in (True, False):
         nerf = copy.deepcopy(tiny_nerf)
         nerf.config.sampler.render_hole_estimate = estimate
+        nerf.config.sampler.render_band_samples = 3  # not the fit's count
+        assert nerf.render_sampler(with_depth=True).n_band == 3  # renders use it
         real, made = nerf.render_sampler, []
 
         def spy(*args, real=real, made=made, **kw):
@@ -234,7 +237,8 @@ def test_semantic_steps_sample_holes_as_labels_render(tiny_nerf, tiny_scene):
         with torch.no_grad():
             samples = nerf.sample(origins, dirs, made[0], depth=rays.depth[hole])
         per_ray[estimate] = torch.bincount(samples.ray_indices, minlength=64)
-    band = tiny_nerf.config.sampler.render_band_samples
+    band = tiny_nerf.config.sampler.band_samples
+    assert band != 3
     assert float((per_ray[True] == band).float().mean()) > 0.75  # a surface found: the band
     assert int(per_ray[True].sum()) < int(per_ray[False].sum())  # fewer than the march
 
