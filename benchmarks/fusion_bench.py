@@ -56,7 +56,9 @@ line also gives ``val_unknown``, the share of held-out pixels left unknown). ``n
 and ``novel-estimated`` render the held-out views from their poses alone (novel views: colour
 and labels, no depth), every ray marched or rendered around its estimated surface
 (``SamplerConfig.render_novel_estimate``); they give val mIoU, val PSNR and seconds per
-held-out view. Columns: mIoU on
+held-out view. ``novel-fine-march`` marches them as before the preset's coarser render march
+(``SamplerConfig.render_march_steps``, ``render_early_stop``, ``render_min_weight``): at the
+grid's step, to transmittance 1/1000. Columns: mIoU on
 the training views and on the held-out views (the scene's last 20%), fit seconds, render seconds per view (train
 and held-out views together), stored bytes (map: keys and scores as held in memory; NeRF: its
 checkpoint file) and peak memory: the process's peak resident set size while that fuser fit
@@ -392,13 +394,26 @@ def nerf_row(
     return row
 
 
-RENDERS = {  # --renders: name -> (row suffix, render option of the fitted model, views' depth)
-    "holes-marched": ("holes marched", ("sampler", "render_hole_estimate", False), True),
-    "unseen-unknown": ("unseen=unknown", (None, "render_unseen_unknown", True), True),
-    "novel-marched": ("held-out views without depth, marched", None, False),
+# The march of a view without depth before "A cheaper march for novel views"
+# (benchmarks/RESULTS.md): the grid's own step, stopped at transmittance 1/1000, samples of
+# weight 1/10000 kept.
+FINE_MARCH = [
+    ("sampler", "render_march_steps", None),
+    ("sampler", "render_early_stop", 1e-3),
+    ("sampler", "render_min_weight", 1e-4),
+]
+RENDERS = {  # --renders: name -> (row suffix, render options of the fitted model, views' depth)
+    "holes-marched": ("holes marched", [("sampler", "render_hole_estimate", False)], True),
+    "unseen-unknown": ("unseen=unknown", [(None, "render_unseen_unknown", True)], True),
+    "novel-marched": ("held-out views without depth, marched", [], False),
+    "novel-fine-march": (
+        "held-out views without depth, marched at the grid's step",
+        FINE_MARCH,
+        False,
+    ),
     "novel-estimated": (
         "held-out views without depth, surface estimated",
-        ("sampler", "render_novel_estimate", True),
+        [("sampler", "render_novel_estimate", True)],
         False,
     ),
 }
@@ -412,11 +427,11 @@ def render_row(
     views as novel views: from their poses alone, colour and labels, as ``csa nerf render
     --views novel`` does; they score val mIoU and PSNR only."""
     nerf = fitted["nerf"]
-    suffix, option, with_depth = RENDERS[render]
-    section, key, value = option or (None, None, None)
-    target = nerf.config if section is None else getattr(nerf.config, section)
-    before = getattr(target, key) if key else None
-    if key:
+    suffix, options, with_depth = RENDERS[render]
+    saved = []
+    for section, key, value in options:
+        target = nerf.config if section is None else getattr(nerf.config, section)
+        saved.append((target, key, getattr(target, key)))
         setattr(target, key, value)
     try:
         t0 = time.perf_counter()
@@ -434,7 +449,7 @@ def render_row(
             n_views = len(val)
         seconds = (time.perf_counter() - t0) / n_views
     finally:
-        if key:
+        for target, key, before in saved:
             setattr(target, key, before)
     row = {"fuser": f"{fit['fuser']}, {suffix}", "fit_s": fit["fit_s"]}
     row["render_s_per_view"] = seconds

@@ -23,6 +23,10 @@ class RaySamples:
     t_ends: Tensor
     num_rays: int
     per_ray: int | None = None  # set when every ray has exactly this many samples (dense layout)
+    # (S, F): values the sampler computed at each sample on its way (the rendering march's
+    # field features, ``SemanticNerf.render_rays``), so they need not be computed again; None
+    # when it computed none.
+    features: Tensor | None = None
 
     @property
     def t_mids(self) -> Tensor:

@@ -39,6 +39,8 @@ from csa_core.nerf.normalization import SceneBox
 from csa_core.nerf.rendering import RaySamples, render_weights
 
 DensityFn = Callable[[Tensor], Tensor]
+# A density function that also returns per-point features (``OccupancyGrid.sampling``).
+FeatureDensityFn = Callable[[Tensor], tuple[Tensor, Tensor]]
 
 
 def _dense_samples(edges: Tensor) -> RaySamples:
@@ -314,16 +316,24 @@ class OccupancyGrid(nn.Module):
         stratified: bool = False,
         generator: torch.Generator | None = None,
         max_samples: int | None = None,
-        density_fn: DensityFn | None = None,
+        density_fn: DensityFn | FeatureDensityFn | None = None,
         early_stop_eps: float = 1e-3,
         min_weight: float = 1e-4,
-        chunk_steps: int = 48,
+        chunk_steps: int = 16,  # benchmarks/RESULTS.md "A cheaper march for novel views": 16 beat 48
+        step: float | None = None,
     ) -> RaySamples:
-        """March every ray from ``t_near`` to ``t_far`` in steps of the box diagonal / ``march_steps``
-        (metres along the ray) and keep the samples in occupied cells, at most ``max_samples``
-        per ray. With ``density_fn``, rays stop once their transmittance falls below
-        ``early_stop_eps`` and samples whose weight is below ``min_weight`` are dropped."""
-        step = self.step_size(box)
+        """March every ray from ``t_near`` to ``t_far`` in steps of ``step`` metres along the ray
+        (default: the box diagonal / ``march_steps``) and keep the samples in occupied cells, at
+        most ``max_samples`` per ray. With ``density_fn``, rays stop once their transmittance
+        falls below ``early_stop_eps`` and samples whose weight is below ``min_weight`` are
+        dropped. The density is evaluated ``chunk_steps`` steps of the active rays at a time:
+        smaller chunks waste fewer evaluations behind a surface, larger ones fewer passes.
+        ``density_fn`` may return ``(sigma (N,), features (N, F))``: the features of the kept
+        samples come back as ``RaySamples.features`` (what a renderer would otherwise compute
+        again at the same points)."""
+        step = self.step_size(box) if step is None else step
+        if not step > 0:
+            raise ValueError(f"OccupancyGrid.sampling: step must be > 0 metres, got {step}")
         n_rays = origins.shape[0]
         dev = origins.device
         dt = step / dirs.norm(dim=-1)  # t-step so that each step is ``step`` metres long
@@ -338,7 +348,7 @@ class OccupancyGrid(nn.Module):
         limit = max_samples if max_samples is not None else n_steps + 1
         count = torch.zeros(n_rays, dtype=torch.long, device=dev)
         trans = torch.ones(n_rays, device=dev)
-        kept_ri, kept_t = [], []
+        kept_ri, kept_t, kept_f = [], [], []
         for s0 in range(0, n_steps, chunk_steps):
             active = (count < limit) & (t_near + s0 * dt < t_far) & (trans > early_stop_eps)
             rays = torch.nonzero(active).squeeze(-1)
@@ -346,9 +356,13 @@ class OccupancyGrid(nn.Module):
                 break
             s1 = min(s0 + chunk_steps, n_steps)
             t, pts, keep = self._march_chunk(box, origins, dirs, t_near, dt, offset, t_far, rays, s0, s1)
+            evaluated, features = (keep.clone() if density_fn is not None else keep), None
             if density_fn is not None and bool(keep.any()):
                 sigma_dt = torch.zeros_like(t)
-                sigma_dt[keep] = density_fn(pts[keep]) * step
+                sigma = density_fn(pts[keep])
+                if isinstance(sigma, tuple):
+                    sigma, features = sigma  # features: one row per evaluated sample
+                sigma_dt[keep] = sigma * step
                 excl = torch.cumsum(sigma_dt, dim=1) - sigma_dt
                 weight = trans[rays, None] * torch.exp(-excl) * (1.0 - torch.exp(-sigma_dt))
                 keep &= weight >= min_weight
@@ -358,6 +372,8 @@ class OccupancyGrid(nn.Module):
             count[rays] += keep.sum(dim=1)
             kept_ri.append(rays[:, None].expand_as(t)[keep])
             kept_t.append(t[keep])
+            if features is not None:  # kept is a subset of evaluated, both in row-major order
+                kept_f.append(features[keep[evaluated]])
         if not kept_ri:
             empty = torch.zeros(0, device=dev)
             return RaySamples(empty.long(), empty, empty, n_rays)
@@ -369,7 +385,10 @@ class OccupancyGrid(nn.Module):
         )
         ri, t = ri[order], t[order]
         half = 0.5 * dt[ri]
-        return RaySamples(ri, t - half, t + half, n_rays)
+        features = None
+        if kept_f and sum(f.shape[0] for f in kept_f) == ri.shape[0]:
+            features = torch.cat(kept_f)[order]
+        return RaySamples(ri, t - half, t + half, n_rays, features=features)
 
     def _march_chunk(
         self,
@@ -720,8 +739,10 @@ class OccupancySampler(RaySampler):
     """Empty-space-skipping march through ``grid`` (an ``OccupancyGrid`` over ``box``).
 
     The grid is refreshed every ``update_every`` training steps (a full pass at step 0, a
-    random quarter of the cells after). With ``prune`` (rendering), rays stop once opaque and
-    samples of near-zero weight are dropped; training samples are not pruned.
+    random quarter of the cells after). With ``prune`` (rendering), rays stop once their
+    transmittance is below ``early_stop_eps`` and samples of weight below ``min_weight`` are
+    dropped; training samples are not pruned. ``step``: metres per marching step (default: the
+    grid's, the box diagonal / ``march_steps``).
     """
 
     def __init__(
@@ -732,11 +753,21 @@ class OccupancySampler(RaySampler):
         update_every: int = 16,
         ema_decay: float = 0.95,
         prune: bool = True,
+        step: float | None = None,
+        early_stop_eps: float = 1e-3,
+        min_weight: float = 1e-4,
     ):
+        if not 0 <= early_stop_eps < 1 or not 0 <= min_weight < 1:
+            raise ValueError(
+                f"OccupancySampler: early_stop_eps ({early_stop_eps}) and min_weight "
+                f"({min_weight}) must be in [0, 1)"
+            )
         self.grid, self.box = grid, box
         self.max_samples = max_samples
         self.update_every, self.ema_decay = update_every, ema_decay
         self.prune = prune
+        self.step = step
+        self.early_stop_eps, self.min_weight = early_stop_eps, min_weight
 
     def update_every_n_steps(self, step, density_fn, generator=None) -> None:
         if step % self.update_every == 0:
@@ -770,4 +801,7 @@ class OccupancySampler(RaySampler):
             generator,
             max_samples=self.max_samples,
             density_fn=density_fn if self.prune else None,
+            early_stop_eps=self.early_stop_eps,
+            min_weight=self.min_weight,
+            step=self.step,
         )

@@ -336,3 +336,67 @@ def test_an_empty_occupancy_grid_renders_a_blank_view_instead_of_failing(tiny_ne
     samples = nerf.sample(*rays.rays(torch.arange(64)), nerf.render_sampler(with_depth=False))
     assert len(samples) == 0
     assert np.isfinite(trainer.semantic_steps(2, rays_per_step=64))
+
+
+def test_the_march_keeps_the_features_the_render_would_compute_again(tiny_nerf, tiny_scene):
+    """A novel view's march returns each kept sample's field features; rendering from them
+    gives what evaluating the field again at those samples gives (the same samples: the
+    features change nothing but the work)."""
+    import torch
+
+    from csa_core.nerf.rays import image_rays
+    from csa_core.nerf.rendering import RaySamples
+
+    f = tiny_scene.val_frames[0]
+    origins, dirs = image_rays(tiny_scene.intrinsics, f.pose)
+    sampler = tiny_nerf.render_sampler(with_depth=False)
+    with torch.inference_mode():
+        kept = tiny_nerf.sample(
+            origins, dirs, sampler, density_fn=tiny_nerf._march_features(semantics=True)
+        )
+        plain = tiny_nerf.sample(origins, dirs, sampler)
+        assert len(kept) > 0 and kept.features is not None and plain.features is None
+        assert torch.equal(kept.ray_indices, plain.ray_indices)
+        assert torch.equal(kept.t_starts, plain.t_starts)
+        # The features are the field's at each kept sample, in the samples' order.
+        pts = origins[kept.ray_indices] + dirs[kept.ray_indices] * kept.t_mids[:, None]
+        sigma, geo, sem = tiny_nerf.field.features(tiny_nerf.box.to_unit(pts), True)
+        # (t_mids rebuilt from the intervals and another batch: float noise only)
+        torch.testing.assert_close(
+            kept.features, torch.cat([sigma[:, None], geo, sem], -1), atol=1e-4, rtol=1e-4
+        )
+        again = RaySamples(kept.ray_indices, kept.t_starts, kept.t_ends, kept.num_rays)
+        reused = tiny_nerf.render_samples_pruned(origins, dirs, kept)
+        evaluated = tiny_nerf.render_samples_pruned(origins, dirs, again)
+    for key in ("depth", "opacity", "rgb", "semantics"):
+        torch.testing.assert_close(reused[key], evaluated[key], atol=1e-5, rtol=1e-5)
+    # render_rays takes that path for a view without depth, and colour without semantics too.
+    out = tiny_nerf.render_rays(origins, dirs)
+    torch.testing.assert_close(out["semantics"], reused["semantics"], atol=1e-5, rtol=1e-5)
+    colour_only = tiny_nerf.render_rays(origins, dirs, semantics=False)
+    torch.testing.assert_close(colour_only["rgb"], reused["rgb"], atol=1e-5, rtol=1e-5)
+
+
+def test_the_render_march_has_its_own_step_and_pruning(tiny_nerf):
+    """``render_march_steps``, ``render_early_stop`` and ``render_min_weight`` shape the
+    rendering march only; training marches keep the grid's step and are not pruned."""
+    s = copy.deepcopy(tiny_nerf.config.sampler)
+    try:
+        cfg = tiny_nerf.config.sampler
+        cfg.render_march_steps, cfg.render_early_stop, cfg.render_min_weight = 64, 0.02, 0.003
+        render = tiny_nerf.make_sampler("occupancy")
+        train = tiny_nerf.make_sampler("occupancy", training=True)
+        assert render.step == pytest.approx(tiny_nerf.box.diagonal / 64)
+        assert (render.early_stop_eps, render.min_weight, render.prune) == (0.02, 0.003, True)
+        assert train.step == pytest.approx(tiny_nerf.grid.step_size(tiny_nerf.box))
+        assert not train.prune
+        cfg.render_march_steps = None
+        assert tiny_nerf.make_sampler("occupancy").step == pytest.approx(train.step)
+        cfg.render_march_steps = 0
+        with pytest.raises(ValueError, match="render_march_steps"):
+            tiny_nerf.make_sampler("occupancy")
+        cfg.render_march_steps, cfg.render_early_stop = 64, 1.5
+        with pytest.raises(ValueError, match="early_stop_eps"):
+            tiny_nerf.make_sampler("occupancy")
+    finally:
+        tiny_nerf.config.sampler = s

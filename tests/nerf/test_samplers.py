@@ -237,3 +237,50 @@ def test_depth_guided_rendering_matches_the_full_march_where_depth_is_exact():
     assert float((dg - t_true)[inside].abs().max()) < 0.01
     torch.testing.assert_close(hg, hm, atol=0.02, rtol=0)
     assert ng < nm  # and with fewer samples
+
+
+def test_a_coarser_pruned_march_still_finds_the_sphere_with_fewer_samples():
+    """The rendering march's knobs: a longer step and harder pruning keep fewer samples, stop
+    rays once opaque and still put the surface where it is."""
+    o, d, t_true, disc = _rays(16)
+    t_near, t_far = BOX.ray_interval(o, d, near=0.05)
+    grid = OccupancyGrid(resolution=64, threshold=0.01, march_steps=1024)
+    grid.update(BOX, _sphere_density, decay=0.0, generator=torch.Generator().manual_seed(0))
+    hit = disc > 0.05
+    fine = grid.sampling(BOX, o, d, t_near, t_far, density_fn=_sphere_density, early_stop_eps=0.0)
+    coarse = OccupancySampler(
+        grid, BOX, None, step=2 * grid.step_size(BOX), early_stop_eps=1e-2, min_weight=1e-3
+    ).sampling(o, d, t_near, t_far, density_fn=_sphere_density)
+    assert 0 < len(coarse) < 0.5 * len(fine)
+    for s in (fine, coarse):
+        depth, opacity = _composite(o, d, s)
+        assert torch.all(opacity[hit] > 0.98)
+        assert torch.allclose(depth[hit], t_true[hit], atol=2 * 2 * grid.step_size(BOX))
+    with pytest.raises(ValueError, match="step"):
+        grid.sampling(BOX, o, d, t_near, t_far, step=0.0)
+    with pytest.raises(ValueError, match="min_weight"):
+        OccupancySampler(grid, BOX, None, min_weight=-1.0)
+
+
+def test_the_march_returns_the_features_of_the_samples_it_keeps():
+    """A density function returning ``(sigma, features)``: the kept samples come back with
+    their features, row for row, whatever was pruned and however the chunks fell."""
+    o, d, _, _ = _rays(12)
+    t_near, t_far = BOX.ray_interval(o, d, near=0.05)
+    grid = OccupancyGrid(resolution=32, threshold=0.01, march_steps=256)
+    grid.update(BOX, _sphere_density, decay=0.0, generator=torch.Generator().manual_seed(0))
+
+    def with_points(points):
+        return _sphere_density(points), torch.cat([points, points.norm(dim=-1, keepdim=True)], -1)
+
+    for chunk in (3, 16, 64):
+        s = grid.sampling(
+            BOX, o, d, t_near, t_far, density_fn=with_points, chunk_steps=chunk, max_samples=6
+        )
+        plain = grid.sampling(
+            BOX, o, d, t_near, t_far, density_fn=_sphere_density, chunk_steps=chunk, max_samples=6
+        )
+        assert len(s) > 0 and torch.equal(s.t_starts, plain.t_starts)
+        pts = o[s.ray_indices] + d[s.ray_indices] * s.t_mids[:, None]
+        torch.testing.assert_close(s.features[:, :3], pts, atol=1e-5, rtol=0)
+        assert plain.features is None
