@@ -128,6 +128,15 @@ class SamplerConfig:
     render_early_stop: float = 1e-3
     render_min_weight: float = 1e-4
 
+    def __post_init__(self) -> None:
+        if self.render_march_steps is not None and self.render_march_steps < 1:
+            raise ValueError(
+                f"sampler.render_march_steps must be at least 1 (or none), got {self.render_march_steps}"
+            )
+        for name in ("render_early_stop", "render_min_weight"):
+            if not 0 <= getattr(self, name) < 1:
+                raise ValueError(f"sampler.{name} must be in [0, 1), got {getattr(self, name)}")
+
 
 @dataclass
 class LossConfig:

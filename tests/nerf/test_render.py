@@ -400,3 +400,15 @@ def test_the_render_march_has_its_own_step_and_pruning(tiny_nerf):
             tiny_nerf.make_sampler("occupancy")
     finally:
         tiny_nerf.config.sampler = s
+    # Through the one override path (csa nerf render --set): an error naming the field.
+    from csa_core.overrides import apply_overrides
+
+    for item, field in [
+        ("sampler.render_march_steps=0", "render_march_steps"),
+        ("sampler.render_early_stop=1", "render_early_stop"),
+        ("sampler.render_min_weight=-0.1", "render_min_weight"),
+    ]:
+        with pytest.raises(CSAInputError, match=field):
+            apply_overrides(tiny_config(), [item])
+    unset = apply_overrides(tiny_config(), ["sampler.render_march_steps=none"])
+    assert unset.sampler.render_march_steps is None
