@@ -16,6 +16,7 @@ from fastapi import Depends, FastAPI
 
 from csa_core import __version__
 from server import ui
+from server.artifacts import OrphanSweeper
 from server.auth import require_api_key, resolve_api_keys
 from server.errors import install_error_handlers
 from server.executors import make_executor
@@ -61,10 +62,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         services = open_services(settings)
         services.api_keys = resolve_api_keys(settings)
         app.state.services = services
-        with services.sessions() as session:
-            swept = services.store.sweep_unrecorded(session, settings.orphan_blob_grace_seconds)
-        if swept:
-            log.info("deleted %d unrecorded artifact files older than %.0f s", len(swept), settings.orphan_blob_grace_seconds)
         device = None if settings.device == "auto" else settings.device
         app.state.model_cache = ModelCache(services.store, settings.model_cache_size, device)
         app.state.nerf_cache = NerfCache(services.store, settings.model_cache_size, device)
@@ -73,11 +70,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             worker = make_executor(services)
             worker.start()
         app.state.worker = worker
+        sweeper = OrphanSweeper(
+            services.store, services.sessions, settings.orphan_blob_grace_seconds, settings.orphan_sweep_interval_seconds
+        )
+        sweeper.start()
+        app.state.orphan_sweeper = sweeper
         try:
             yield
         finally:
             if worker is not None:
                 worker.stop(timeout=60)
+            sweeper.stop()
             services.close()
 
     app = FastAPI(

@@ -8,18 +8,22 @@ size and kind; :meth:`ArtifactStore.verify` re-hashes the files against it.
 A blob is written before the transaction that records it commits; when that transaction fails
 (a concurrent upload, a deleted scene, a dead process) the file stays unrecorded.
 :meth:`ArtifactStore.sweep_unrecorded` deletes such files (and stale ``tmp/*.part`` files) once
-they are older than a grace period; storing bytes that already exist refreshes the file's
+they are older than a grace period (the server runs it in the background, :class:`OrphanSweeper`,
+never inside a request); storing bytes that already exist refreshes the file's
 modification time, so a blob an open transaction is about to record is never swept.
 """
 
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import shutil
 import tempfile
+import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -207,3 +211,52 @@ class ArtifactStore:
         for sha in shas:
             if session.get(Artifact, sha) is None:
                 self.path_of(sha).unlink(missing_ok=True)
+
+
+log = logging.getLogger(__name__)
+
+
+class OrphanSweeper:
+    """Runs :meth:`ArtifactStore.sweep_unrecorded` in a daemon thread: once at start, then every
+    ``interval_s`` seconds (0: only the first), so a store of millions of files is listed in the
+    background instead of inside a request or before the server answers. A failed sweep is
+    logged and retried at the next interval."""
+
+    def __init__(
+        self,
+        store: ArtifactStore,
+        sessions: Callable[[], AbstractContextManager[Session]],
+        older_than_s: float,
+        interval_s: float,
+    ):
+        if interval_s < 0:
+            raise ValueError(f"orphan_sweep_interval_seconds must be >= 0, got {interval_s}")
+        self.store, self.sessions = store, sessions
+        self.older_than_s, self.interval_s = older_than_s, interval_s
+        self.sweeps = 0  # finished sweeps (for tests and the log)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="csa-orphan-sweeper", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                with self.sessions() as session:
+                    swept = self.store.sweep_unrecorded(session, self.older_than_s)
+                if swept:
+                    log.info(
+                        "deleted %d unrecorded artifact files older than %.0f s",
+                        len(swept),
+                        self.older_than_s,
+                    )
+            except Exception:  # a sweep must never take the server down: try again later
+                log.exception("sweeping unrecorded artifact files failed")
+            self.sweeps += 1
+            if self.interval_s == 0 or self._stop.wait(self.interval_s):
+                return

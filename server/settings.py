@@ -38,7 +38,8 @@ class Settings(BaseSettings):
     max_image_pixels: int = 4096 * 4096
     max_model_upload_bytes: int = 1024 * MiB
     max_inference_upload_bytes: int = 32 * MiB
-    orphan_blob_grace_seconds: float = 3600.0  # unrecorded blob files older than this are deleted (at start, on scene deletion)
+    orphan_blob_grace_seconds: float = 3600.0  # unrecorded blob files older than this are deleted by the background sweep
+    orphan_sweep_interval_seconds: float = 3600.0  # background sweep: at start, then this often (0: at start only)
 
     # Jobs: where they run (docs/architecture.md, "Executors").
     executor: Literal["embedded", "ray"] = "embedded"  # embedded: in this process; ray: on a Ray cluster

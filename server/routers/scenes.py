@@ -69,6 +69,5 @@ def delete_scene(scene_ref: str, db: DbDep, services: ServicesDep) -> Response:
     db.flush()
     removed = services.store.collect_garbage(db)
     db.commit()
-    services.store.remove_unrecorded(db, removed)
-    services.store.sweep_unrecorded(db, services.settings.orphan_blob_grace_seconds)
+    services.store.remove_unrecorded(db, removed)  # older leftovers: the background sweep
     return Response(status_code=status.HTTP_204_NO_CONTENT)

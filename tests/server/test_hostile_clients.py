@@ -516,3 +516,55 @@ def test_putting_existing_bytes_again_refreshes_the_grace_period(tmp_path: Path)
         session.commit()
         assert store.path_of(stored.sha256).is_file()
     engine.dispose()
+
+
+def test_the_background_sweeper_deletes_old_orphans_and_stops(tmp_path: Path) -> None:
+    """``OrphanSweeper`` sweeps once at start and then every interval in its own thread (no
+    request lists the store); a failing sweep is logged and retried; stop ends the thread."""
+    import os
+    import time
+    from contextlib import contextmanager
+
+    from sqlalchemy import create_engine
+    from sqlalchemy.orm import Session
+
+    from server.artifacts import ArtifactStore, OrphanSweeper
+    from server.db.models import Base
+
+    store = ArtifactStore(tmp_path / "store")
+    engine = create_engine(f"sqlite:///{tmp_path / 'db.sqlite'}")
+    Base.metadata.create_all(engine)
+    with Session(engine) as session:
+        orphan = store.put_bytes(session, b"orphan bytes", "color")
+        session.rollback()  # never recorded
+        kept = store.put_bytes(session, b"recorded bytes", "color")
+        session.commit()
+    old = time.time() - 7200
+    for sha in (orphan.sha256, kept.sha256):
+        os.utime(store.path_of(sha), (old, old))
+    calls = []
+
+    @contextmanager
+    def sessions():
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("the database is not up yet")  # the first sweep fails
+        with Session(engine) as s:
+            yield s
+
+    sweeper = OrphanSweeper(store, sessions, older_than_s=3600, interval_s=0.01)
+    sweeper.start()
+    deadline = time.monotonic() + 30
+    while store.path_of(orphan.sha256).exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    sweeper.stop()
+    assert not store.path_of(orphan.sha256).exists()
+    assert store.path_of(kept.sha256).is_file()
+    assert sweeper.sweeps >= 2 and not sweeper._thread.is_alive()
+    once = OrphanSweeper(store, sessions, older_than_s=3600, interval_s=0)
+    once.start()
+    once._thread.join(30)
+    assert once.sweeps == 1 and not once._thread.is_alive()
+    with pytest.raises(ValueError, match="orphan_sweep_interval_seconds"):
+        OrphanSweeper(store, sessions, older_than_s=3600, interval_s=-1)
+    engine.dispose()
