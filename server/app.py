@@ -8,7 +8,6 @@ process, or on a Ray cluster; ``server/executors``).
 
 from __future__ import annotations
 
-import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -38,8 +37,6 @@ from server.routers import (
 from server.services import open_services
 from server.settings import Settings
 from server.upload_limits import BodyLimitMiddleware
-
-log = logging.getLogger(__name__)
 
 API_PREFIX = "/api/v1"
 

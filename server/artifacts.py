@@ -32,6 +32,8 @@ from sqlalchemy.orm import Session
 
 from server.db.models import Artifact, Frame, ModelVersion, NerfCheckpoint
 
+log = logging.getLogger(__name__)
+
 _CHUNK = 1 << 20
 
 
@@ -211,9 +213,6 @@ class ArtifactStore:
         for sha in shas:
             if session.get(Artifact, sha) is None:
                 self.path_of(sha).unlink(missing_ok=True)
-
-
-log = logging.getLogger(__name__)
 
 
 class OrphanSweeper:
