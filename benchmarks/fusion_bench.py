@@ -51,7 +51,8 @@ older read-back: it can only label pixels with depth); one row per NeRF preset
 the same fit again with another render option (fit seconds and size are the fit's):
 ``holes-marched`` marches the pixels in depth holes along the whole ray (the render before
 ``SamplerConfig.render_hole_estimate``), ``unseen-unknown`` labels surfaces that no training
-camera saw 0, unknown, as the map does (``NerfConfig.render_unseen_unknown``; its printed
+camera saw 0, unknown, as the map does (``NerfConfig.render_unseen_unknown``; with a preset
+entry ``fast+observed_resolution=128``, the cells its views' depth measured; its printed
 line also gives ``val_unknown``, the share of held-out pixels left unknown). ``novel-marched``
 and ``novel-estimated`` render the held-out views from their poses alone (novel views: colour
 and labels, no depth), every ray marched or rendered around its estimated surface

@@ -1,8 +1,9 @@
 """Checkpoints for the memory bank: one safetensors file, tensors + JSON metadata.
 
 The file holds the field's parameters (float32 or float16), the occupancy grid (bit-packed),
-the training poses, the per-frame colour corrections if the model has them (float32), and in
-the safetensors header a JSON document with the config, the scene box, the camera, the class
+the cells the training views' depth measured (bit-packed, ``visibility.py``), the training
+poses, the per-frame colour corrections if the model has them (float32), and in the
+safetensors header a JSON document with the config, the scene box, the camera, the class
 list and the scene id, so loading needs nothing but the file.
 Never pickle: a checkpoint is data, not code.
 """
@@ -30,6 +31,7 @@ _FIELD_PREFIX = "field."
 _GRID_KEY = "occupancy_bits"
 _POSES_KEY = "train_poses"
 _APPEARANCE_KEY = "appearance"
+_OBSERVED_KEY = "observed_bits"  # visibility.py; absent when no training view had depth
 
 
 def checkpoint_bytes(nerf: SemanticNerf, dtype: str | None = None) -> bytes:
@@ -44,6 +46,10 @@ def checkpoint_bytes(nerf: SemanticNerf, dtype: str | None = None) -> bytes:
     bits = np.packbits(nerf.grid.occupied.detach().cpu().numpy().reshape(-1))
     tensors[_GRID_KEY] = torch.from_numpy(bits)
     tensors[_POSES_KEY] = torch.as_tensor(np.asarray(nerf.info.train_poses, dtype=np.float64))
+    if nerf.observed is not None and nerf.observed.marked:
+        tensors[_OBSERVED_KEY] = torch.from_numpy(
+            np.packbits(nerf.observed.cells.detach().cpu().numpy().reshape(-1))
+        )
     if nerf.appearance is not None:  # 6 numbers per training frame, kept in float32
         tensors[_APPEARANCE_KEY] = nerf.appearance.params.detach().to("cpu", torch.float32)
     meta = {
@@ -120,6 +126,14 @@ def _from_bytes(data: bytes) -> SemanticNerf:
     if bits.size != r**3:
         raise CSAInputError("checkpoint", "occupancy grid is truncated")
     nerf.grid.occupied.copy_(torch.from_numpy(bits.astype(bool)).reshape(r, r, r))
+    if _OBSERVED_KEY in tensors:
+        if nerf.observed is None:
+            raise CSAInputError("checkpoint", "observed cells stored but observed_resolution is 0")
+        n = nerf.observed.resolution
+        bits = np.unpackbits(tensors[_OBSERVED_KEY].numpy())[: n**3]
+        if bits.size != n**3:
+            raise CSAInputError("checkpoint", "observed cells are truncated")
+        nerf.observed.cells.copy_(torch.from_numpy(bits.astype(bool)).reshape(n, n, n))
     nerf.eval()
     return nerf
 

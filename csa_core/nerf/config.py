@@ -224,7 +224,19 @@ class NerfConfig:
     # outside every training camera's image or no surface is rendered (render.py). Off: the
     # NeRF's class everywhere (the paper).
     render_unseen_unknown: bool = False
+    # Ours: cells for the unseen test (visibility.py): the box cut into this many cells per
+    # axis, marked by the fit where a training view's depth measured a surface (and one cell
+    # around); 0 = none (the default), the test then uses the training cameras' frusta. At
+    # 128 the cells knew occlusion but were not better than the frusta (benchmarks/RESULTS.md
+    # "Unseen surfaces: cells the training depth measured"), and cost 256 KB per checkpoint.
+    observed_resolution: int = 0
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.observed_resolution, int) and 0 <= self.observed_resolution <= 512):
+            raise ValueError(
+                f"observed_resolution must be an integer in [0, 512], got {self.observed_resolution!r}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -245,6 +257,8 @@ class NerfConfig:
             appearance=d.get("appearance", "none"),
             render_chunk=d["render_chunk"],
             render_unseen_unknown=d.get("render_unseen_unknown", False),
+            # Checkpoints written before the cells existed have none.
+            observed_resolution=d.get("observed_resolution", 0),
             seed=d["seed"],
         )
 

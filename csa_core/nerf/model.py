@@ -37,6 +37,7 @@ from csa_core.nerf.samplers import (
     ReferenceSampler,
     UniformSampler,
 )
+from csa_core.nerf.visibility import ObservedCells
 
 
 @dataclass
@@ -94,6 +95,10 @@ class SemanticNerf(nn.Module):
         )
         s = config.sampler
         self.grid = OccupancyGrid(s.occupancy_resolution, s.occupancy_threshold, s.march_steps)
+        # Surfaces the training views measured (visibility.py), for the unseen test.
+        self.observed = (
+            ObservedCells(config.observed_resolution) if config.observed_resolution else None
+        )
 
     @property
     def device(self) -> torch.device:
@@ -481,6 +486,14 @@ class SemanticNerf(nn.Module):
             )
         self.grid.keep_visible(self.box, self.seen_by_training_cameras)
         return float(self.grid.occupied.float().mean())
+
+    def seen_surface_points(self, points: Tensor, margin: float = 0.1) -> Tensor:
+        """Whether world surface points (N, 3) were seen in training: in a cell where a
+        training view measured a surface (:attr:`observed`, when marked), else inside a
+        training camera's image (:meth:`seen_by_training_cameras`, ``margin``)."""
+        if self.observed is not None and self.observed.marked:
+            return self.observed.contains(self.box, points)
+        return self.seen_by_training_cameras(points, margin=margin)
 
     def seen_by_training_cameras(self, points: Tensor, margin: float = 0.1) -> Tensor:
         """Whether world points (N, 3) project inside (with a ``margin`` fraction) the image of

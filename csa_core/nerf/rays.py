@@ -7,7 +7,7 @@ metric z-depth and rendered depth needs no conversion.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -155,6 +155,15 @@ class RayBank:
         if self._median_depth is None:
             self._median_depth = float(self.depth[self.depth > 0].median())
         return near_view_weight(self.depth[ids], power, self._median_depth)
+
+    def surface_points(self, chunk: int = 2**18) -> Iterator[Tensor]:
+        """World points (N, 3) of every pixel with measured depth, in chunks of pixels."""
+        for start in range(0, self.count, chunk):
+            ids = torch.arange(start, min(start + chunk, self.count), device=self.device)
+            ids = ids[self.depth[ids] > 0]
+            if ids.numel():
+                origins, dirs = self.rays(ids)
+                yield origins + dirs * self.depth[ids, None]
 
     def rays(self, ids: Tensor) -> tuple[Tensor, Tensor]:
         """World origins and unit-z directions (N, 3) of pixels ``ids``."""

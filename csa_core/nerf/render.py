@@ -6,8 +6,9 @@ rotations, mean of the translations). Training and novel views can be rendered f
 checkpoint alone (it stores the training poses); ``val`` and ``all`` need the scene.
 
 ``unseen_unknown`` (default: the config's ``render_unseen_unknown``, off): a pixel whose
-surface point (its measured depth, else the rendered depth) no training camera sees, or whose
-ray renders no surface at all, gets label 0 (``UNKNOWN``: what the voxel map answers there;
+surface point (its measured depth, else the rendered depth) no training camera sees (with
+``NerfConfig.observed_resolution`` > 0: that no training view measured,
+``csa_core/nerf/visibility.py``), or whose ray renders no surface at all, gets label 0 (``UNKNOWN``: what the voxel map answers there;
 ignored by the segmentation loss, a miss in the scores) and confidence 0.
 """
 
@@ -128,9 +129,11 @@ def seen_surface(
     out: dict[str, torch.Tensor],
     depth: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Whether each ray's surface point lies inside the image of at least one training camera
+    """Whether each ray's surface point was seen in training, (R,) bool: it lies in a cell
+    where a training view measured a surface (``SemanticNerf.observed``, visibility.py, when
+    the model has those cells), or else inside the image of at least one training camera
     (``SemanticNerf.seen_by_training_cameras``; the image reaches half a pixel beyond the
-    outermost pixel centres, so the margin is about one pixel), (R,) bool. The point is at the
+    outermost pixel centres, so the margin is about one pixel). The point is at the
     measured ``depth`` where there is one, else at the rendered depth (``out``'s depth over
     its opacity); rays with neither (nothing rendered) count as unseen."""
     opacity = out["opacity"]
@@ -143,7 +146,7 @@ def seen_surface(
     points = origins + dirs * t[:, None]
     intr = nerf.info.intrinsics
     margin = 1.0 / min(intr.width, intr.height)
-    return found & nerf.seen_by_training_cameras(points, margin=margin)
+    return found & nerf.seen_surface_points(points, margin=margin)
 
 
 def _view_from_output(

@@ -37,6 +37,7 @@ from torch import Tensor, nn
 
 from csa_core.nerf.normalization import SceneBox
 from csa_core.nerf.rendering import RaySamples, render_weights
+from csa_core.nerf.visibility import cell_index
 
 DensityFn = Callable[[Tensor], Tensor]
 # A density function that also returns per-point features (``OccupancyGrid.sampling``).
@@ -252,11 +253,7 @@ class OccupancyGrid(nn.Module):
         self.occupied.view(-1)[idx[ok]] = True
 
     def _cell_index(self, u: Tensor) -> Tensor:
-        r = self.resolution
-        inside = ((u >= 0) & (u < 1)).all(dim=-1)
-        c = (u.clamp(0, 1 - 1e-6) * r).long()
-        flat = (c[..., 0] * r + c[..., 1]) * r + c[..., 2]
-        return torch.where(inside, flat, torch.full_like(flat, -1))
+        return cell_index(u, self.resolution)
 
     @torch.no_grad()
     def keep_visible(

@@ -62,6 +62,9 @@ class NerfTrainer:
         self.free_space_warmup = free_space_warmup
         self.semantics = semantics
         self.sampler = nerf.train_sampler(has_depth=rays.has_depth)
+        if nerf.observed is not None and rays.has_depth:
+            # The surfaces these views measured, for the unseen test of the renders.
+            nerf.observed.mark(nerf.box, rays.surface_points())
         self.optimizer = make_adam(nerf.parameter_groups(), lr or o.lr, nerf)
         fraction = o.final_lr_fraction if final_lr_fraction is None else final_lr_fraction
         decay = math.exp(math.log(fraction) / max(1, schedule_steps))

@@ -22,6 +22,7 @@ from csa_core.nerf.samplers import (
     OccupancySampler,
 )
 from csa_core.nerf.trainer import NerfTrainer
+from tests.nerf.conftest import tiny_config
 
 BOX = SceneBox((0.0, 0.0, 0.0), 3.0)
 RADIUS = 0.6
@@ -260,14 +261,19 @@ def _project(points: np.ndarray, pose: np.ndarray, intr) -> tuple[np.ndarray, ..
     return z, u, v
 
 
-def test_surfaces_outside_every_training_frustum_render_unknown(tiny_nerf, tiny_scene):
-    """One training camera left, turned 35 degrees away from a view: the pixels of that view
-    whose measured surface point the camera does not see get 0, the others keep the class
-    they get without the option."""
+def test_without_observed_cells_surfaces_outside_every_training_frustum_render_unknown(
+    tiny_nerf, tiny_scene
+):
+    """A model without the cells of measured surfaces (a checkpoint written before them, or
+    ``observed_resolution=0``) falls back to the training cameras' frusta. One training camera
+    left, turned 35 degrees away from a view: the pixels of that view whose measured surface
+    point the camera does not see get 0, the others keep the class they get without the
+    option."""
     intr = tiny_scene.intrinsics
     f = tiny_scene.train_frames[3]
     a = np.asarray(f.pose, np.float64) @ _yaw(35.0)
     nerf = copy.deepcopy(tiny_nerf)
+    nerf.observed = None
     nerf.info.train_poses = a[None]
     pts = backproject(f.depth.astype(np.float64), intr, np.asarray(f.pose, np.float64))
     z, u, v = _project(pts.reshape(-1, 3), a, intr)
@@ -308,12 +314,86 @@ def test_pseudo_labels_with_unknown_are_ignored_by_the_segmentation_loss(tiny_ne
     from csa_core.seg.losses import IGNORE_INDEX, nyu40_to_target
 
     nerf = copy.deepcopy(tiny_nerf)
+    nerf.observed = None  # the frustum test
     nerf.info.train_poses = (np.asarray(tiny_scene.train_frames[0].pose) @ _yaw(35.0))[None]
     labels = render_pseudo_labels(nerf, tiny_scene, "train", unseen_unknown=True)
     stack = torch.as_tensor(np.stack(list(labels.values())))
     assert bool((stack == UNKNOWN).any()) and bool((stack != UNKNOWN).any())
     target = nyu40_to_target(stack)
     assert torch.all((target == IGNORE_INDEX) == (stack == UNKNOWN))
+
+
+def _with_cells(nerf, scene, resolution: int = 64):
+    """A copy of ``nerf`` with the cells of its scene's measured surfaces, as a fit with
+    ``observed_resolution`` marks them."""
+    from csa_core.nerf.visibility import ObservedCells
+
+    nerf = copy.deepcopy(nerf)
+    nerf.config.observed_resolution = resolution
+    nerf.observed = ObservedCells(resolution)
+    nerf.observed.mark(nerf.box, RayBank(scene.train_frames, scene.intrinsics).surface_points())
+    return nerf
+
+
+def test_the_fit_marks_the_cells_of_every_measured_surface_point(tiny_scene):
+    from csa_core.nerf.fit import fit_semantic_nerf
+
+    cfg = tiny_config(steps=10)
+    cfg.observed_resolution = 64
+    nerf, _ = fit_semantic_nerf(tiny_scene, "label-nyu40", cfg, device="cpu", progress=False)
+    observed = nerf.observed
+    assert observed is not None and observed.marked and observed.resolution == 64
+    bank = RayBank(tiny_scene.train_frames, tiny_scene.intrinsics)
+    points = torch.cat(list(bank.surface_points(chunk=1000)))
+    assert points.shape[0] == sum(int((f.depth > 0).sum()) for f in tiny_scene.train_frames)
+    assert bool(observed.contains(nerf.box, points).all())
+    # Most of the box is empty space or behind the walls: not measured.
+    assert 0.0 < float(observed.cells.float().mean()) < 0.5
+    # The default builds none.
+    assert tiny_config().observed_resolution == 0
+
+
+def test_observed_cells_know_occlusion_where_the_frusta_do_not(tiny_nerf, tiny_scene):
+    """A point 30 cm behind a measured surface, on the same training ray: inside that camera's
+    image (the frustum test says seen) but in no cell a view measured (the cells say unseen)."""
+    nerf = _with_cells(tiny_nerf, tiny_scene)
+    f = tiny_scene.train_frames[0]
+    origins, dirs = image_rays(tiny_scene.intrinsics, f.pose)
+    depth = torch.as_tensor(f.depth.reshape(-1))
+    surface = origins + dirs * depth[:, None]
+    behind = origins + dirs * (depth[:, None] + 0.3)
+    u = nerf.box.to_unit(behind)
+    ok = (depth > 0) & ((u >= 0) & (u < 1)).all(-1)  # behind points inside the box
+    assert int(ok.sum()) > 100
+    n = int(ok.sum())
+    pts = torch.cat([surface[ok], behind[ok]])
+    by_cells = nerf.seen_surface_points(pts)
+    assert bool(by_cells[:n].all())  # every measured point is seen
+    assert float(by_cells[n:].float().mean()) < 0.2  # what lies behind it mostly not
+    frusta = nerf.seen_by_training_cameras(pts, margin=0.01)
+    assert bool(frusta.all())  # while the camera's image holds both
+    nerf.observed = None  # a model without cells: the frusta
+    assert torch.equal(nerf.seen_surface_points(pts, margin=0.01), frusta)
+
+
+def test_observed_cells_mark_points_and_their_neighbours():
+    from csa_core.nerf.normalization import SceneBox
+    from csa_core.nerf.visibility import ObservedCells
+
+    box = SceneBox(center=(0.0, 0.0, 0.0), extent=8.0)  # cells of 1 m at resolution 8
+    cells = ObservedCells(8)
+    assert not cells.marked
+    p = torch.tensor([[0.5, 0.5, 0.5], [100.0, 0.0, 0.0]])  # the second is outside the box
+    cells.mark(box, p, dilate=0)
+    assert int(cells.cells.sum()) == 1
+    assert cells.contains(box, p).tolist() == [True, False]
+    near = torch.tensor([[1.5, 0.5, 0.5], [2.5, 0.5, 0.5]])  # one and two cells away
+    assert cells.contains(box, near).tolist() == [False, False]
+    cells.mark(box, iter([p[:1], p[:1]]), dilate=1)  # an iterable of chunks, one cell around
+    assert int(cells.cells.sum()) == 27
+    assert cells.contains(box, near).tolist() == [True, False]
+    with pytest.raises(ValueError, match="resolution"):
+        ObservedCells(0)
 
 
 def test_seen_surface_uses_the_measured_depth_first(tiny_nerf, tiny_scene):
