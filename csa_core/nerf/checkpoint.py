@@ -43,13 +43,10 @@ def checkpoint_bytes(nerf: SemanticNerf, dtype: str | None = None) -> bytes:
     tensors: dict[str, torch.Tensor] = {}
     for name, p in nerf.field.state_dict().items():
         tensors[_FIELD_PREFIX + name] = p.detach().to("cpu", store).contiguous()
-    bits = np.packbits(nerf.grid.occupied.detach().cpu().numpy().reshape(-1))
-    tensors[_GRID_KEY] = torch.from_numpy(bits)
+    tensors[_GRID_KEY] = _pack_bits(nerf.grid.occupied)
     tensors[_POSES_KEY] = torch.as_tensor(np.asarray(nerf.info.train_poses, dtype=np.float64))
     if nerf.observed is not None and nerf.observed.marked:
-        tensors[_OBSERVED_KEY] = torch.from_numpy(
-            np.packbits(nerf.observed.cells.detach().cpu().numpy().reshape(-1))
-        )
+        tensors[_OBSERVED_KEY] = _pack_bits(nerf.observed.cells)
     if nerf.appearance is not None:  # 6 numbers per training frame, kept in float32
         tensors[_APPEARANCE_KEY] = nerf.appearance.params.detach().to("cpu", torch.float32)
     meta = {
@@ -122,20 +119,28 @@ def _from_bytes(data: bytes) -> SemanticNerf:
             raise CSAInputError("checkpoint", "config has per-frame appearance but no tensor")
         nerf.appearance.params.data.copy_(tensors[_APPEARANCE_KEY].float())
     r = int(meta["occupancy_resolution"])
-    bits = np.unpackbits(tensors[_GRID_KEY].numpy())[: r**3]
-    if bits.size != r**3:
-        raise CSAInputError("checkpoint", "occupancy grid is truncated")
-    nerf.grid.occupied.copy_(torch.from_numpy(bits.astype(bool)).reshape(r, r, r))
+    _unpack_bits(tensors[_GRID_KEY], nerf.grid.occupied, r, "occupancy grid")
     if _OBSERVED_KEY in tensors:
         if nerf.observed is None:
             raise CSAInputError("checkpoint", "observed cells stored but observed_resolution is 0")
-        n = nerf.observed.resolution
-        bits = np.unpackbits(tensors[_OBSERVED_KEY].numpy())[: n**3]
-        if bits.size != n**3:
-            raise CSAInputError("checkpoint", "observed cells are truncated")
-        nerf.observed.cells.copy_(torch.from_numpy(bits.astype(bool)).reshape(n, n, n))
+        _unpack_bits(
+            tensors[_OBSERVED_KEY], nerf.observed.cells, nerf.observed.resolution, "observed cells"
+        )
     nerf.eval()
     return nerf
+
+
+def _pack_bits(grid: torch.Tensor) -> torch.Tensor:
+    """A boolean grid as bytes, 8 cells each."""
+    return torch.from_numpy(np.packbits(grid.detach().cpu().numpy().reshape(-1)))
+
+
+def _unpack_bits(packed: torch.Tensor, grid: torch.Tensor, r: int, what: str) -> None:
+    """Fill the boolean ``grid`` (r, r, r) from :func:`_pack_bits`' bytes."""
+    bits = np.unpackbits(packed.numpy())[: r**3]
+    if bits.size != r**3:
+        raise CSAInputError("checkpoint", f"{what} is truncated")
+    grid.copy_(torch.from_numpy(bits.astype(bool)).reshape(r, r, r))
 
 
 def _read_metadata(data: bytes) -> dict:

@@ -8,8 +8,9 @@ checkpoint alone (it stores the training poses); ``val`` and ``all`` need the sc
 ``unseen_unknown`` (default: the config's ``render_unseen_unknown``, off): a pixel whose
 surface point (its measured depth, else the rendered depth) no training camera sees (with
 ``NerfConfig.observed_resolution`` > 0: that no training view measured,
-``csa_core/nerf/visibility.py``), or whose ray renders no surface at all, gets label 0 (``UNKNOWN``: what the voxel map answers there;
-ignored by the segmentation loss, a miss in the scores) and confidence 0.
+``csa_core/nerf/visibility.py``), or whose ray renders no surface at all, gets label 0
+(``UNKNOWN``: what the voxel map answers there; ignored by the segmentation loss, a miss in
+the scores) and confidence 0.
 """
 
 from __future__ import annotations
