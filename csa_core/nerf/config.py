@@ -32,6 +32,16 @@ class HashEncodingConfig:
     # 1.9x, but 30 s (cached) to 100 s (first time) to compile in every new process, so off by
     # default; falls back to eager if compiling fails.
     compile: bool = False
+    # Ours: ``auto`` encodes float32 positions on the CPU with a fused C kernel
+    # (csa_core/nerf/hash_kernel.py; benchmarks/RESULTS.md, "A fused C kernel for the hash
+    # encoding") where a C compiler is present, else in PyTorch; ``torch``: always PyTorch.
+    implementation: Literal["auto", "torch"] = "auto"
+
+    def __post_init__(self) -> None:
+        if self.implementation not in ("auto", "torch"):
+            raise ValueError(
+                f"encoding.implementation must be 'auto' or 'torch', got {self.implementation!r}"
+            )
 
 
 @dataclass

@@ -141,11 +141,9 @@ class SemanticField(nn.Module):
             with torch.no_grad():
                 sigma, geo = self.density(x)
             return sigma, self.semantic_head(geo, None)
-        rows, weights = self.encoding.corners(x)
+        enc, sem = self.encoding(x, self.semantic_table, self.semantic_levels, detach_main=True)
         with torch.no_grad():
-            sigma, geo = self._density_head(x, self.encoding.interpolate(rows, weights))
-        levels = self.semantic_levels
-        sem = self.encoding.interpolate(rows[:levels], weights[:levels], self.semantic_table)
+            sigma, geo = self._density_head(x, enc)
         return sigma, self.semantic_head(geo, sem)
 
     def color(self, geo: Tensor, dirs: Tensor) -> Tensor:

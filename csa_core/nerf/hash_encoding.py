@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from csa_core.nerf import hash_kernel
 from csa_core.nerf.config import HashEncodingConfig
 
 # Spatial-hash primes of Instant-NGP (x uses 1).
@@ -110,6 +111,7 @@ class HashEncoding(nn.Module):
         self.level_sizes = sizes
         self._num_dense = sum(dense)
         self._hash_mask = table_size - 1
+        self._layout = hash_kernel.LevelLayout(resolutions, offsets, self._num_dense, table_size - 1)
         self.register_buffer(
             "resolutions", torch.tensor(resolutions, dtype=torch.float32), persistent=False
         )
@@ -194,16 +196,33 @@ class HashEncoding(nn.Module):
         """Number of table rows used by the first ``levels`` levels (their blocks come first)."""
         return int(sum(self.level_sizes[:levels]))
 
+    def uses_kernel(self, x: Tensor, table: Tensor | None = None) -> bool:
+        """Whether positions ``x`` are encoded by the C kernel (``csa_core.nerf.hash_kernel``):
+        ``implementation`` ``auto``, float32 on the CPU, and the kernel built here."""
+        table = self.table if table is None else table
+        return self.cfg.implementation == "auto" and hash_kernel.usable(x, table)
+
     def forward(
-        self, x: Tensor, extra: Tensor | None = None, extra_levels: int = 0
+        self,
+        x: Tensor,
+        extra: Tensor | None = None,
+        extra_levels: int = 0,
+        detach_main: bool = False,
     ) -> Tensor | tuple[Tensor, Tensor]:
         """Features ``(N, L * F)``; with ``extra`` (a second table laid out like the first
         ``extra_levels`` levels of this one) also that table's features ``(N, extra_levels * F')``,
-        interpolated with the same corners and weights (computed once)."""
+        interpolated with the same corners and weights (computed once). ``detach_main``: no
+        gradient reaches this encoding's own table (only ``extra``'s)."""
         n = x.shape[0]
+        main = self.table.detach() if detach_main else self.table
+        if self.uses_kernel(x, main) and (extra is None or hash_kernel.usable(x, extra)):
+            feats = hash_kernel.encode(x, main, self.cfg.num_levels, self._layout)
+            if extra is None:
+                return feats
+            return feats, hash_kernel.encode(x, extra, extra_levels, self._layout)
         if n > INFERENCE_BLOCK and not torch.is_grad_enabled():
             parts = [
-                self(x[i : i + INFERENCE_BLOCK], extra, extra_levels)
+                self(x[i : i + INFERENCE_BLOCK], extra, extra_levels, detach_main)
                 for i in range(0, n, INFERENCE_BLOCK)
             ]
             if extra is None:
@@ -215,7 +234,7 @@ class HashEncoding(nn.Module):
                 empty if extra is None else (empty, x.new_zeros(0, extra_levels * extra.shape[1]))
             )
         rows, weights = self.corners(x)
-        feats = self.interpolate(rows, weights)
+        feats = self.interpolate(rows, weights, main)
         if extra is None:
             return feats
         return feats, self.interpolate(rows[:extra_levels], weights[:extra_levels], extra)

@@ -1,12 +1,23 @@
-"""The hash encoding against a direct per-level, per-corner implementation."""
+"""The hash encoding against a direct per-level, per-corner implementation: every test runs
+twice, through the C kernel (csa_core/nerf/hash_kernel.py) and through the PyTorch path."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
+from csa_core.nerf import hash_kernel
 from csa_core.nerf.config import HashEncodingConfig
 from csa_core.nerf.hash_encoding import HashEncoding, level_resolutions
+
+
+@pytest.fixture(params=["kernel", "torch"], autouse=True)
+def implementation(request, monkeypatch):
+    if request.param == "torch":
+        monkeypatch.setattr(HashEncoding, "uses_kernel", lambda self, x, table=None: False)
+    elif not hash_kernel.available():
+        pytest.skip("no C compiler here: the kernel cannot be built")
+    return request.param
 
 
 def _reference_encoding(enc: HashEncoding, x: torch.Tensor) -> torch.Tensor:
