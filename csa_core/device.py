@@ -22,4 +22,8 @@ def resolve_device(name: str | torch.device | None = None) -> torch.device:
         raise CSAInputError("--device", f"not a torch device: {name!r} ({e})") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise CSAInputError("--device", "CUDA was requested but this machine has no usable CUDA GPU")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise CSAInputError(
+            "--device", f"{name}: this machine has {torch.cuda.device_count()} CUDA device(s)"
+        )
     return dev

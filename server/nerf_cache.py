@@ -16,12 +16,13 @@ class NerfCache:
     def __init__(self, store: ArtifactStore, size: int, device: str | None):
         self.store = store
         self.size = max(1, size)
-        self.device = device or "cpu"
+        self.device = device  # None: auto, CUDA when present (Settings.device)
         self._items: OrderedDict[int, Any] = OrderedDict()
         self._lock = threading.Lock()
         self._render_lock = threading.Lock()
 
     def get(self, nerf_id: int, files: dict[str, str]) -> Any:
+        from csa_core.device import resolve_device
         from csa_core.nerf.checkpoint import load_checkpoint
 
         with self._lock:
@@ -31,7 +32,7 @@ class NerfCache:
         (_, sha), *rest = files.items()
         if rest:
             raise ValueError(f"NeRF {nerf_id}: expected one checkpoint file, found {len(files)}")
-        nerf = load_checkpoint(self.store.open_verified(sha), device=self.device)
+        nerf = load_checkpoint(self.store.open_verified(sha), device=resolve_device(self.device))
         with self._lock:
             self._items[nerf_id] = nerf
             while len(self._items) > self.size:

@@ -31,8 +31,9 @@ class NerfMemory(Protocol):
         """Scene names, oldest first."""
         ...
 
-    def load(self, scene: str) -> SemanticNerf:
-        """The NeRF remembered for ``scene``, as stored (read back from its checkpoint)."""
+    def load(self, scene: str, device: str | None = "cpu") -> SemanticNerf:
+        """The NeRF remembered for ``scene``, as stored (read back from its checkpoint), on
+        ``device`` (``None``/``"auto"``: CUDA when present)."""
         ...
 
     def add(self, scene: str, nerf: SemanticNerf) -> object:

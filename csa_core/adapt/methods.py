@@ -163,6 +163,7 @@ class Ours(ContinualMethod):
                 cfg.replay.views,
                 previous,
                 cfg.replay.max_render_samples,
+                device=cfg.seg.device,
             )
         t_replay = time.perf_counter() - t0
         result = adapt_one_step(

@@ -72,11 +72,13 @@ class ReplayBuffer:
         views: str = "train",
         scenes: Sequence[str] | None = None,
         max_render_samples: int | None = None,
+        device: str | None = None,
     ) -> ReplayBuffer:
         """Render ``size`` pairs split equally among ``scenes`` (default: every scene in the bank)
         at their training or novel viewpoints. ``max_render_samples`` caps the marching
         samples per ray: stored NeRFs have no sensor depth to place samples, and on a CPU
-        the cap decides what replay costs."""
+        the cap decides what replay costs. The NeRFs render on ``device`` (``None``/``"auto"``:
+        CUDA when present), the step's segmentation device."""
         if views not in ("train", "novel"):
             raise ValueError(f"ReplayBuffer: views must be 'train' or 'novel', got {views!r}")
         names = list(bank.scenes if scenes is None else scenes)
@@ -84,7 +86,7 @@ class ReplayBuffer:
         for scene, count in zip(names, split_buffer(size, len(names)), strict=True):
             if count == 0:
                 continue
-            nerf = bank.load(scene)
+            nerf = bank.load(scene, device=device)
             if max_render_samples is not None:
                 nerf.config.sampler.max_render_samples = max_render_samples
             poses = view_poses(nerf, views)

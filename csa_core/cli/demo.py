@@ -113,7 +113,9 @@ def _previews(scene, out: Path, every: int = 15) -> int:
     return len(frames)
 
 
-def _label_fusion(scene_dir: Path, out: Path, size: tuple[int, int], steps: int, seed: int) -> dict:
+def _label_fusion(
+    scene_dir: Path, out: Path, size: tuple[int, int], steps: int, seed: int, device: str
+) -> dict:
     """Corrupt a scene's labels frame by frame, fuse them in a NeRF, score both against truth.
 
     The corruption (wrong-class blobs, partly swapped objects, ragged edges, different in
@@ -135,7 +137,9 @@ def _label_fusion(scene_dir: Path, out: Path, size: tuple[int, int], steps: int,
     for f in scene.frames:
         f.labels["label-noisy"] = corrupt_labels(f.labels["label-nyu40"], rng)
     t0 = time.perf_counter()
-    nerf, _ = fit_semantic_nerf(scene, "label-noisy", "fast", steps=steps, progress=True)
+    nerf, _ = fit_semantic_nerf(
+        scene, "label-noisy", "fast", device=device, steps=steps, progress=True
+    )
     fit_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     _, fused = render_at_frames(nerf, scene.train_frames, scene.intrinsics)
@@ -276,7 +280,9 @@ def run_demo(args: argparse.Namespace) -> int:
 
     if args.label_fusion:
         console.rule("NeRF label fusion on a new scene")
-        fusion = _label_fusion(new[0], out / "fusion", args.fusion_size, args.fusion_steps, args.seed)
+        fusion = _label_fusion(
+            new[0], out / "fusion", args.fusion_size, args.fusion_steps, args.seed, device
+        )
         report["label_fusion"] = fusion
         ft = Table(title=f"label fusion on {fusion['scene']} ({fusion['train_views']} training views at "
                          f"{fusion['size'][0]}x{fusion['size'][1]}, mIoU vs ground truth)")

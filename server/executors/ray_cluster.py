@@ -109,6 +109,13 @@ class _Attempt:
     lost: bool = False  # the database says another owner has the job now
 
 
+def task_device(configured: str, num_gpus: float) -> str:
+    """The torch device of a Ray task: the configured one where the task reserved a GPU, else
+    the CPU (newer Ray no longer hides a node's GPUs from tasks that reserved none, and such a
+    task would otherwise share a GPU that another job holds)."""
+    return configured if num_gpus >= 1 else "cpu"
+
+
 class RayExecutor(Executor):
     mode = "ray"
 
@@ -419,9 +426,10 @@ class RayExecutor(Executor):
             self.end(job_id, queue.FAILED, f"could not read the job's inputs: {type(e).__name__}: {e}")
             return
         token = f"{job_id}-{uuid.uuid4().hex[:8]}"
-        settings = JobSettings(device=self.settings.device, torch_threads=self.settings.torch_threads, job_log_lines=self.settings.job_log_lines)
-        spec = JobSpec(job_id, kind_name, params, attempt, token, kind.run, settings)
         resources = self.resources(kind)
+        device = task_device(self.settings.device, resources["num_gpus"])
+        settings = JobSettings(device=device, torch_threads=self.settings.torch_threads, job_log_lines=self.settings.job_log_lines)
+        spec = JobSpec(job_id, kind_name, params, attempt, token, kind.run, settings)
         # SPREAD: jobs go to different nodes when they can, rather than next to their inputs on
         # the API's node (each job is heavy, and its inputs are small next to its work).
         options = {"name": f"csa-{kind_name}-{job_id}", "max_retries": 0, "scheduling_strategy": "SPREAD", **resources}

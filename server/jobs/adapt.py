@@ -6,7 +6,8 @@ read only to score), the NeRFs the lineage's earlier steps banked (read from the
 store as stored, :class:`server.memory_bank.StoredNerfMemory`), and the lineage root's
 pre-training scenes. It builds the core's :class:`~csa_core.adapt.step.ContinualState` from
 them and takes the one step that ``csa adapt`` and ``csa experiment`` take, so the same
-inputs, seed and thread count give the same network. It then registers the outputs in one
+inputs, seed and thread count give the same network on a CPU (on CUDA, atomic additions in the
+hash grid's backward pass and cuDNN make two runs agree only statistically). It then registers the outputs in one
 transaction: the new model version (parent = the version it started from) with the BatchNorm
 memory after the step, the scene's NeRF in the memory bank (unless the collapse guard skipped
 the scene), and the R-matrix entries this step makes computable (the new version on every

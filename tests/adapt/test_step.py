@@ -45,10 +45,12 @@ class RecordingBank(MemoryBank):
     def __init__(self, folder):
         super().__init__(folder)
         self.loaded = []
+        self.devices = []
 
     def load(self, scene, device="cpu"):
         nerf = super().load(scene, device)
         self.loaded.append(nerf)
+        self.devices.append(device)
         return nerf
 
 
@@ -65,6 +67,7 @@ def test_step_replays_from_the_bank_at_the_configs_sample_cap(pretrained, target
     assert second["replay"] == {target_scenes[0].name: config.replay.buffer_size}
     (replayed,) = bank.loaded
     assert replayed.config.sampler.max_render_samples == 7
+    assert bank.devices == [config.seg.device] == ["cpu"]  # replay renders where the step trains
     assert bank.scenes == [s.name for s in target_scenes[:2]]
     assert list(state.batchnorm.scenes) == bank.scenes == second["batchnorm_pooled"]
     assert second["memory_bytes"]["nerf_total"] == sum(bank.bytes_per_scene().values())

@@ -393,6 +393,16 @@ def test_the_default_executor_never_imports_ray() -> None:
     assert out.stdout.strip() == "False"
 
 
+def test_a_task_without_a_reserved_gpu_runs_on_the_cpu() -> None:
+    """``evaluate`` reserves no GPU: its task must not pick one (which another job may hold)."""
+    from server.executors.ray_cluster import task_device
+    from server.jobs.kinds import KINDS
+
+    assert task_device("auto", 0) == task_device("cuda", 0) == "cpu"
+    assert task_device("auto", 1) == "auto" and task_device("cuda:1", 1) == "cuda:1"
+    assert not KINDS["evaluate"].gpu and KINDS["fit_nerf"].gpu
+
+
 def test_a_registration_travels_with_its_files_and_runs_against_the_api_store(tmp_path: Path) -> None:
     """What ``ctx.complete(register)`` in a task becomes on the API node: the same function,
     its paths re-rooted where the API wrote the task's files, ``ctx`` and the task's store

@@ -270,9 +270,11 @@ def mapping_adapt(
     """
     names = [f.name for f in scene.train_frames]
     if predictions is None:
+        from csa_core.seg.config import TrainConfig
         from csa_core.seg.predict import predict_scene
 
-        predictions = predict_scene(model, scene, split="train")
+        device = (train or TrainConfig.paper_adaptation()).device  # predict where it trains
+        predictions = predict_scene(model, scene, split="train", device=device)
     else:
         predictions = {n: predictions[n] for n in names if n in predictions}
     t0 = time.perf_counter()
