@@ -135,6 +135,8 @@ def _fit(args: argparse.Namespace) -> int:
 
     if args.out.exists() and not args.overwrite:
         raise CSAInputError(args.out, "output already exists (pass --overwrite to replace it)")
+    if args.out.is_dir():
+        raise CSAInputError(args.out, "is a folder: --out names the checkpoint file to write")
     cfg = fit_config(args)
     labels = None if args.labels.lower() == "none" else args.labels
     scene = read_scene(
@@ -161,7 +163,7 @@ def _render(args: argparse.Namespace) -> int:
     from csa_core.data.scene_io import read_scene
     from csa_core.errors import CSAInputError
     from csa_core.nerf.checkpoint import load_checkpoint
-    from csa_core.nerf.render import render_views, write_rendered_views
+    from csa_core.nerf.render import check_scene_matches, render_views, write_rendered_views
     from csa_core.overrides import apply_overrides
 
     for item in args.set:
@@ -173,12 +175,15 @@ def _render(args: argparse.Namespace) -> int:
                 f"{', '.join(k + '*' for k in RENDER_KEYS)}; the rest belongs to the fitted "
                 "model (csa nerf fit --set)",
             )
+    if args.out.exists() and not args.overwrite:  # before the renders, not after them
+        raise CSAInputError(args.out, "output already exists (pass --overwrite to replace it)")
     nerf = load_checkpoint(args.checkpoint, device=args.device)
     apply_overrides(nerf.config, args.set)
     scene = None
     if args.scene is not None:
         intr = nerf.info.intrinsics
         scene = read_scene(args.scene, size=(intr.width, intr.height), labels=[], every=args.every)
+        check_scene_matches(nerf, scene, args.scene)
     elif args.views in ("val", "all"):
         raise CSAInputError("--scene", f"--views {args.views} needs the scene folder")
     views = render_views(nerf, scene, args.views, sampler=args.sampler, progress=not args.quiet)

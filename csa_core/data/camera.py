@@ -135,6 +135,13 @@ def check_intrinsics(intr: Intrinsics, where: str | Path) -> Intrinsics:
     return intr
 
 
+CAPTURE_CENTRE_OFFSET = 0.2
+"""Largest distance of a captured image's principal point from the image centre, as a fraction
+of the image side (at least a pixel). Cameras have it within a few percent of the centre;
+intrinsics written for another image size (images resized after calibration) put it at the
+image's edge (intrinsics of twice the size) or at a quarter (half the size). A rendering
+camera may be anything :func:`check_intrinsics` allows; a stored scene's cameras may not."""
+
 PINHOLE_TOLERANCE = 1.0e-6
 """Largest deviation of the fixed cells of an intrinsic matrix (the zeros and ones of a pinhole
 matrix) that :func:`intrinsics_from_matrix` accepts; the skew may reach this times 1000 of fx."""
@@ -145,8 +152,9 @@ def intrinsics_from_matrix(K: np.ndarray, width: int, height: int, where: str | 
     of an image of ``width`` x ``height``, or a :class:`CSAInputError` naming ``where`` when the
     matrix is not a pinhole matrix: a bottom row other than ``0 0 1``, skew (this camera model has
     none), or, in a 4x4 matrix, a fourth row or column other than the identity's. Those cells
-    would otherwise be ignored without a word. The one reader of intrinsic matrices for the scene
-    reader and the server."""
+    would otherwise be ignored without a word; also when the principal point lies farther than
+    :data:`CAPTURE_CENTRE_OFFSET` from the image centre (intrinsics of another image size). The
+    one reader of intrinsic matrices for the scene reader and the server."""
     m = np.asarray(K, dtype=np.float64)
     if m.shape not in ((3, 3), (4, 4)):
         raise CSAInputError(where, f"intrinsics must be a 3x3 or 4x4 matrix, got shape {'x'.join(map(str, m.shape))}")
@@ -162,6 +170,14 @@ def intrinsics_from_matrix(K: np.ndarray, width: int, height: int, where: str | 
         raise CSAInputError(where, f"skew {m[0, 1]:g} is not supported: the camera model is a pinhole without skew (the cell right of fx must be 0)")
     if m.shape == (4, 4) and not (np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() <= tol and np.abs(m[:3, 3]).max() <= tol):
         raise CSAInputError(where, "not a pinhole intrinsic matrix: the fourth row and column of a 4x4 matrix must be those of the identity (0 0 0 1)")
+    for name, c, side in (("cx", intr.cx, intr.width), ("cy", intr.cy, intr.height)):
+        centre = (side - 1) / 2
+        if abs(c - centre) > max(CAPTURE_CENTRE_OFFSET * side, 1.0):
+            raise CSAInputError(
+                where,
+                f"principal point {name} = {c:g} px is far from the centre ({centre:g}) of the {intr.width}x{intr.height} image: "
+                "are these the intrinsics of another image size? (they must match the images as stored)",
+            )
     return intr
 
 

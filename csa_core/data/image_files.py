@@ -37,11 +37,18 @@ def read_color(path: Path) -> np.ndarray:
     return img
 
 
+DEPTH_INVALID_MM = 65535
+"""The uint16 maximum, which sensors write where they measured nothing (7-Scenes' Kinect
+frames): read as 0, never as a surface 65.5 m away."""
+
+
 def read_depth_mm(path: Path) -> np.ndarray:
-    """Depth in millimetres as a uint16 (H, W) array, 0 = no measurement."""
+    """Depth in millimetres as a uint16 (H, W) array, 0 = no measurement (stored as 0 or
+    :data:`DEPTH_INVALID_MM`)."""
     img = _imread(path, cv2.IMREAD_UNCHANGED)
     if img.dtype != np.uint16 or img.ndim != 2:
         raise CSAInputError(path, f"depth must be a single-channel uint16 PNG in millimetres, got {img.dtype} with shape {img.shape}")
+    img[img == DEPTH_INVALID_MM] = 0
     return img
 
 
@@ -62,6 +69,8 @@ def read_matrix(path: Path, shapes: tuple[tuple[int, int], ...]) -> np.ndarray:
     """A whitespace-separated matrix text file of one of the allowed shapes."""
     if not path.is_file():
         raise CSAInputError(path, "file not found")
+    if not path.read_text(errors="replace").strip():
+        raise CSAInputError(path, "file is empty")
     try:
         m = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as e:

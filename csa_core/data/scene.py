@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,6 +16,11 @@ TRAIN_FRACTION = 0.8
 
 NYU40_FOLDER = "label-nyu40"
 RAW_SCANNET_FOLDER = "label-filt"
+
+TYPICAL_DEPTH_RANGE_M = (0.1, 100.0)
+"""Where the typical measured depth of an indoor scene lies, in metres (the median over frames
+of each frame's median measured depth). Depth in another unit falls far outside: metres stored
+as integer millimetres give a few millimetres, millimetres taken for metres give thousands."""
 
 
 @dataclass
@@ -117,3 +123,35 @@ def split_point(n: int) -> int:
     if n <= 1:
         return n
     return min(max(int(round(TRAIN_FRACTION * n)), 1), n - 1)
+
+
+def check_depth(frames: Sequence[Frame], where: str | Path) -> None:
+    """Refuse depth that fits and maps cannot use, naming ``where`` and the frame: a depth map
+    of another shape than the frame's colour, values that are not finite or negative (0 marks
+    a pixel without measurement), or a typical measured depth outside
+    :data:`TYPICAL_DEPTH_RANGE_M` (depth in another unit). The one check of depth values for
+    the scene reader and the NeRF fit."""
+    medians = []
+    for f in frames:
+        if f.depth is None:
+            continue
+        d = np.asarray(f.depth)
+        if d.shape != f.color.shape[:2]:
+            got = "x".join(map(str, d.shape[::-1]))
+            raise CSAInputError(where, f"frame {f.name}: depth is {got}, colour is {f.color.shape[1]}x{f.color.shape[0]}")
+        if not np.all(np.isfinite(d)):
+            raise CSAInputError(where, f"frame {f.name}: depth holds NaN or infinite values (use 0 where nothing was measured)")
+        if (d < 0).any():
+            raise CSAInputError(where, f"frame {f.name}: depth holds negative values (use 0 where nothing was measured)")
+        measured = d[d > 0]
+        if measured.size:
+            medians.append(float(np.median(measured)))
+    if medians:
+        typical = float(np.median(medians))
+        lo, hi = TYPICAL_DEPTH_RANGE_M
+        if not lo <= typical <= hi:
+            raise CSAInputError(
+                where,
+                f"typical measured depth is {typical:.3g} m, outside {lo:g}..{hi:g} m: depth in another unit? "
+                "(depth PNGs hold millimetres, 1 m = 1000; depth in memory is in metres)",
+            )

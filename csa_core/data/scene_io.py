@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import glob
 import logging
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -14,7 +15,14 @@ from csa_core.data import image_files as imf
 from csa_core.data.camera import Intrinsics, check_pose, intrinsics_from_matrix
 from csa_core.data.resample import resample_nearest, resize_color
 from csa_core.data.scannet_labels import load_raw_to_nyu40
-from csa_core.data.scene import NYU40_FOLDER, RAW_SCANNET_FOLDER, Frame, Scene, SkippedFrame
+from csa_core.data.scene import (
+    NYU40_FOLDER,
+    RAW_SCANNET_FOLDER,
+    Frame,
+    Scene,
+    SkippedFrame,
+    check_depth,
+)
 from csa_core.errors import CSAInputError
 
 log = logging.getLogger(__name__)
@@ -24,17 +32,33 @@ LabelSpec = None | str | Sequence[str]
 
 
 def frame_names(folder: Path, exts: tuple[str, ...] = imf.COLOR_EXTS) -> list[str]:
-    """Frame names (file stems) of the images in ``folder``, sorted by frame index."""
-    stems = [p.stem for p in folder.iterdir() if p.suffix.lower() in exts and not p.name.startswith(".")]
-    return sorted(stems, key=lambda s: (0, int(s), s) if s.isdigit() else (1, 0, s))
+    """Frame names (file stems) of the images in ``folder`` (suffix in any case), sorted by
+    frame index; a name with two images (``0.jpg`` and ``0.png``) is an error naming both."""
+    found: dict[str, str] = {}
+    for p in sorted(folder.iterdir()):
+        if p.suffix.lower() not in exts or p.name.startswith("."):
+            continue
+        if p.stem in found:
+            raise CSAInputError(p, f"frame {p.stem!r} has two images ({found[p.stem]} and {p.name}); keep one")
+        found[p.stem] = p.name
+    return sorted(found, key=lambda s: (0, int(s), s) if s.isdigit() else (1, 0, s))
 
 
 def _find_image(folder: Path, name: str, exts: Iterable[str] = (".png",)) -> Path:
+    """The image of frame ``name`` in ``folder`` with one of ``exts``, in lower or upper case
+    (cameras write ``.JPG``); the first candidate when there is none (its reader then says it
+    is missing), or an error when the frame's file there has another format (``0.tiff``)."""
+    exts = tuple(exts)
     for ext in exts:
-        p = folder / f"{name}{ext}"
-        if p.is_file():
-            return p
-    return folder / f"{name}{next(iter(exts))}"
+        for suffix in (ext, ext.upper()):
+            p = folder / f"{name}{suffix}"
+            if p.is_file():
+                return p
+    want = folder / f"{name}{exts[0]}"
+    others = sorted(p.name for p in folder.glob(f"{glob.escape(name)}.*")) if folder.is_dir() else []
+    if others:
+        raise CSAInputError(want, f"file not found ({others[0]} is there, but this folder's images must be {'/'.join(exts)})")
+    return want
 
 
 def label_folders_of(root: Path) -> list[str]:
@@ -121,10 +145,15 @@ def read_scene(
     depth_cam: Intrinsics | None = None
     depth_size: tuple[int, int] | None = None
     if has_depth:
-        d0 = imf.read_depth_mm(_find_image(depth_dir, names[0]))
+        d0_path = _find_image(depth_dir, names[0])
+        d0 = imf.read_depth_mm(d0_path)
         depth_size = (d0.shape[1], d0.shape[0])
         depth_txt = root / "intrinsic" / "intrinsic_depth.txt"
-        depth_cam = _read_intrinsics(root, "depth", *depth_size) if depth_txt.is_file() else color_cam.scaled(*depth_size)
+        if depth_txt.is_file():
+            depth_cam = _read_intrinsics(root, "depth", *depth_size)
+        else:
+            hint = "; add intrinsic/intrinsic_depth.txt when depth comes from another camera"
+            depth_cam = _colour_camera_at(d0_path, depth_size, color_cam, "depth is", hint)
 
     def load(name: str) -> Frame | SkippedFrame:
         pose_path = pose_dir / f"{name}.txt"
@@ -146,7 +175,7 @@ def read_scene(
             lab = imf.read_label_image(lpath, max_id=None if raw else 40)
             if raw:
                 lab = lut[lab.astype(np.int64)]
-            lab_cam = _label_camera(lpath, lab, color_cam)
+            lab_cam = _colour_camera_at(lpath, (lab.shape[1], lab.shape[0]), color_cam, "labels are")
             key = NYU40_FOLDER if raw and NYU40_FOLDER not in folders else folder
             frame.labels[key] = resample_nearest(lab, lab_cam, work)
         return frame
@@ -159,14 +188,17 @@ def read_scene(
         log.warning("skipping frame %s: %s", s.name, s.reason)
     if not frames:
         raise CSAInputError(pose_dir, "no frame has a finite pose")
+    if has_depth:
+        check_depth(frames, depth_dir)
     return Scene(name=root.name, intrinsics=work, frames=frames, skipped=skipped, root=root)
 
 
-def _label_camera(path: Path, lab: np.ndarray, color_cam: Intrinsics) -> Intrinsics:
-    """Labels live in the colour camera, possibly stored at another resolution of the same aspect."""
-    h, w = lab.shape
+def _colour_camera_at(path: Path, size: tuple[int, int], color_cam: Intrinsics, what: str, hint: str = "") -> Intrinsics:
+    """The colour camera at another resolution ``size`` of the same aspect (within 1%): the camera
+    of labels, and of depth without ``intrinsic_depth.txt``; ``what`` names the image in errors."""
+    w, h = size
     if abs(w / h - color_cam.width / color_cam.height) > 0.01:
-        raise CSAInputError(path, f"size mismatch: labels are {w}x{h}, colour is {color_cam.width}x{color_cam.height} (aspect ratios differ)")
+        raise CSAInputError(path, f"size mismatch: {what} {w}x{h}, colour is {color_cam.width}x{color_cam.height} (aspect ratios differ{hint})")
     return color_cam.scaled(w, h)
 
 

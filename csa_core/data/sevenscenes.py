@@ -31,7 +31,6 @@ from csa_core.data.scene_io import write_scene
 from csa_core.errors import CSAInputError
 
 FRAME_RE = re.compile(r"^frame-(\d+)\.color\.(jpg|jpeg|png)$", re.IGNORECASE)
-KINECT_INVALID_MM = 65535
 DEFAULT_FOCAL = 585.0  # 7-Scenes documentation: Kinect v1 colour and depth focal length
 CAMERAS = ("color", "depth")
 
@@ -86,7 +85,7 @@ def load_7scenes(
         if not dpath.is_file():
             raise CSAInputError(dpath, "depth file missing")
         mm = imf.read_depth_mm(dpath)
-        depth = np.where(mm == KINECT_INVALID_MM, 0, mm).astype(np.float32) / 1000.0
+        depth = mm.astype(np.float32) / 1000.0  # 65535 (invalid) reads as 0
         depth_cam = cam.scaled(mm.shape[1], mm.shape[0])
         if camera == "color":
             depth = register_depth(depth, depth_cam, full, color_camera.offset)

@@ -43,6 +43,11 @@ def checkpoint_bytes(nerf: SemanticNerf, dtype: str | None = None) -> bytes:
     tensors: dict[str, torch.Tensor] = {}
     for name, p in nerf.field.state_dict().items():
         tensors[_FIELD_PREFIX + name] = p.detach().to("cpu", store).contiguous()
+        if not bool(torch.isfinite(tensors[_FIELD_PREFIX + name]).all()):
+            # A diverged fit, or values beyond float16: never write a model that renders NaN.
+            raise ValueError(
+                f"checkpoint: parameter {name} is not finite as {dtype}; nothing written"
+            )
     tensors[_GRID_KEY] = _pack_bits(nerf.grid.occupied)
     tensors[_POSES_KEY] = torch.as_tensor(np.asarray(nerf.info.train_poses, dtype=np.float64))
     if nerf.observed is not None and nerf.observed.marked:
@@ -113,6 +118,11 @@ def _from_bytes(data: bytes) -> SemanticNerf:
         for k, v in tensors.items()
         if k.startswith(_FIELD_PREFIX)
     }
+    bad = [k for k, v in state.items() if not bool(torch.isfinite(v).all())]
+    if bad:
+        raise CSAInputError(
+            "checkpoint", f"parameter {bad[0]} holds NaN or infinite values (a damaged file)"
+        )
     nerf.field.load_state_dict(state, strict=True)
     if nerf.appearance is not None:
         if _APPEARANCE_KEY not in tensors:

@@ -17,7 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from csa_core.data.scene import Frame, Scene
+from csa_core.data.camera import check_pose
+from csa_core.data.nyu40 import check_label_map
+from csa_core.data.scene import Frame, Scene, check_depth
 from csa_core.device import resolve_device
 from csa_core.errors import CSAInputError
 from csa_core.nerf.config import NerfConfig, preset, scaled_semantic_steps
@@ -62,14 +64,26 @@ def check_fit_inputs(scene: Scene, label_folder: str | None, frames: Sequence[Fr
                 where,
                 f"frame {f.name}: colour is {f.color.shape[1]}x{f.color.shape[0]}, scene is {size[1]}x{size[0]}",
             )
-        if not np.all(np.isfinite(f.pose)):
-            raise CSAInputError(where, f"frame {f.name}: pose is not finite")
+        try:
+            check_pose(f.pose, where)
+        except CSAInputError as e:
+            raise CSAInputError(where, f"frame {f.name}: {e.problem}") from None
         if label_folder is not None and label_folder not in f.labels:
             have = ", ".join(scene.label_folders) or "none"
             raise CSAInputError(
                 where,
                 f"frame {f.name} has no labels in '{label_folder}' (label folders read: {have})",
             )
+        if label_folder is not None:
+            what = f"frame {f.name}: labels '{label_folder}'"
+            try:
+                labels = check_label_map(f.labels[label_folder], what)
+            except ValueError as e:
+                raise CSAInputError(where, str(e)) from None
+            if labels.shape != size:
+                got = f"{labels.shape[1]}x{labels.shape[0]}"
+                raise CSAInputError(where, f"{what} are {got}, scene is {size[1]}x{size[0]}")
+    check_depth(frames, where)
 
 
 def fit_semantic_nerf(
@@ -123,7 +137,7 @@ def fit_semantic_nerf(
     with torch.random.fork_rng(
         devices=[]
     ):  # MLP initialisation from the config's seed, caller's RNG untouched
-        torch.manual_seed(cfg.seed)
+        torch.default_generator.manual_seed(cfg.seed)  # the CPU's: the model is built there
         nerf = SemanticNerf(cfg, box, info, generator=gen).to(dev)
     rays = RayBank(frames, scene.intrinsics, dev, label_folder)
     trainer = NerfTrainer(

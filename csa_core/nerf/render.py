@@ -123,6 +123,37 @@ def view_poses(
     return [(f.name, np.asarray(f.pose)) for f in scene.split(views)]
 
 
+def check_scene_matches(nerf: SemanticNerf, scene: Scene, where: str | Path) -> None:
+    """Refuse to render ``scene``'s views with a model fitted to another scene, naming ``where``:
+    the scene's camera must be the model's, and the frames of the scene that the model was
+    fitted to must have the poses it was fitted at (a scene holding none of them is another
+    scene; one holding them at other poses too)."""
+    a, b = scene.intrinsics, nerf.info.intrinsics
+    if (a.width, a.height) != (b.width, b.height) or not np.allclose(
+        [a.fx, a.fy, a.cx, a.cy], [b.fx, b.fy, b.cx, b.cy], rtol=1e-6, atol=1e-6
+    ):
+        raise CSAInputError(
+            where,
+            f"its camera (fx {a.fx:g}, fy {a.fy:g}, cx {a.cx:g}, cy {a.cy:g} at {a.width}x{a.height}) is not the "
+            f"checkpoint's (fx {b.fx:g}, fy {b.fy:g}, cx {b.cx:g}, cy {b.cy:g}): a checkpoint of another scene?",
+        )
+    fitted = dict(zip(nerf.info.train_frames, nerf.info.train_poses, strict=True))
+    common = [f for f in scene.frames if f.name in fitted]
+    if not common:
+        raise CSAInputError(
+            where,
+            f"none of its frames is one the checkpoint was fitted to (scene '{nerf.info.name}', "
+            f"frames {', '.join(nerf.info.train_frames[:3])}, ...): a checkpoint of another scene?",
+        )
+    for f in common:
+        if not np.allclose(np.asarray(f.pose, dtype=np.float64), fitted[f.name], rtol=0, atol=1e-4):
+            raise CSAInputError(
+                where,
+                f"frame {f.name} has another pose than the checkpoint was fitted to "
+                f"(scene '{nerf.info.name}'): a checkpoint of another scene?",
+            )
+
+
 def seen_surface(
     nerf: SemanticNerf,
     origins: torch.Tensor,

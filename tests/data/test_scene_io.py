@@ -147,6 +147,20 @@ def test_missing_depth_is_kept_missing(tmp_path, random_scene):
     assert read_scene(root).frames[0].depth is None
 
 
+def _depth_of_another_aspect(root: Path) -> None:
+    """Square depth images and no depth intrinsics: the colour camera cannot be scaled to them."""
+    (root / "intrinsic" / "intrinsic_depth.txt").unlink()
+    for p in (root / "depth").iterdir():
+        cv2.imwrite(str(p), np.full((32, 32), 1500, np.uint16))
+
+
+def _depth_in_metres(root: Path) -> None:
+    """Depth PNGs holding whole metres instead of millimetres."""
+    for p in (root / "depth").iterdir():
+        mm = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(p), np.round(mm / 1000.0).astype(np.uint16))
+
+
 @pytest.mark.parametrize(
     ("break_it", "pattern"),
     [
@@ -163,6 +177,13 @@ def test_missing_depth_is_kept_missing(tmp_path, random_scene):
         (lambda r: (r / "intrinsic" / "intrinsic_color.txt").unlink(), r"intrinsic_color.txt: file not found"),
         (lambda r: cv2.imwrite(str(r / "label-nyu40" / "0.png"), np.full((24, 32), 41, np.uint8)), r"label-nyu40/0.png: label id 41 is out of range"),
         (lambda r: shutil.rmtree(r / "pose"), r"pose: folder missing"),
+        # Intrinsics of twice the image size (images resized after calibration).
+        (lambda r: (r / "intrinsic" / "intrinsic_color.txt").write_text("60 0 31.5\n0 62 23.5\n0 0 1\n"), r"intrinsic_color.txt: principal point cx = 31.5 px is far from the centre \(15.5\) of the 32x24 image"),
+        (lambda r: shutil.copy(r / "color" / "20.png", r / "color" / "20.jpg"), r"color/20.png: frame '20' has two images \(20.jpg and 20.png\)"),
+        (_depth_of_another_aspect, r"depth/0.png: size mismatch: depth is 32x32, colour is 32x24 \(aspect ratios differ; add intrinsic/intrinsic_depth.txt"),
+        (_depth_in_metres, r"depth: typical measured depth is 0.00\d+ m, outside 0.1..100 m: depth in another unit"),
+        (lambda r: (r / "depth" / "30.png").rename(r / "depth" / "30.tiff"), r"depth/30.png: file not found \(30.tiff is there, but this folder's images must be .png\)"),
+        (lambda r: (r / "pose" / "20.txt").write_text("\n"), r"pose/20.txt: file is empty"),
     ],
 )
 def test_bad_input_names_the_file(tmp_path, random_scene, break_it, pattern):
@@ -199,3 +220,29 @@ def test_intrinsics_scaling_keeps_pixel_centres():
     half = k.scaled(64, 48)
     assert (half.cx, half.cy) == (31.5, 23.5)  # image centre stays the image centre
     assert imf.depth_to_mm(np.array([0.0, 1.2344, np.nan, 70.0])).tolist() == [0, 1234, 0, 0]
+
+
+def test_upper_case_suffixes_are_read(tmp_path, random_scene):
+    """Cameras write 0.JPG: the frame is found, not reported missing."""
+    root = write_scene(random_scene, tmp_path / "s")
+    for sub in ("color", "depth", "label-nyu40"):
+        for p in (root / sub).iterdir():
+            p.rename(p.with_suffix(".PNG"))
+    back = read_scene(root, labels="all")
+    assert [f.name for f in back.frames] == [f.name for f in random_scene.frames]
+    for a, b in zip(random_scene.frames, back.frames, strict=True):
+        np.testing.assert_array_equal(a.color, b.color)
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_array_equal(a.labels["label-nyu40"], b.labels["label-nyu40"])
+
+
+def test_depth_65535_is_no_measurement(tmp_path, random_scene):
+    """The uint16 maximum is a sensor's "no measurement", not a surface 65.5 m away (which
+    would stretch the NeRF's scene box over the whole range)."""
+    root = write_scene(random_scene, tmp_path / "s")
+    mm = cv2.imread(str(root / "depth" / "10.png"), cv2.IMREAD_UNCHANGED)
+    mm[:, :5] = 65535
+    cv2.imwrite(str(root / "depth" / "10.png"), mm)
+    depth = read_scene(root).frames[1].depth
+    assert np.all(depth[:, :5] == 0)
+    np.testing.assert_array_equal(depth[:, 5:], random_scene.frames[1].depth[:, 5:])

@@ -103,7 +103,7 @@ def test_a_checkpoint_without_observed_cells_loads_and_uses_the_frusta(tiny_nerf
     assert torch.equal(loaded.seen_surface_points(pts), loaded.seen_by_training_cameras(pts))
 
 
-@pytest.mark.parametrize("damage", ["truncate", "garbage", "empty", "foreign", "header"])
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "empty", "foreign", "header", "nan"])
 def test_damaged_checkpoints_raise_input_errors_naming_the_file(tiny_nerf, tmp_path, damage):
     path = tmp_path / f"{damage}.safetensors"
     save_checkpoint(tiny_nerf, path)
@@ -127,9 +127,29 @@ def test_damaged_checkpoints_raise_input_errors_naming_the_file(tiny_nerf, tmp_p
         blob = json.dumps(header).encode()
         blob += b" " * (-len(blob) % 8)
         path.write_bytes(len(blob).to_bytes(8, "little") + blob + data[8 + n :])
+    elif damage == "nan":  # flipped bits inside a tensor: the file still parses
+        n = int.from_bytes(data[:8], "little")
+        header = json.loads(data[8 : 8 + n])
+        start, end = header["field.encoding.table"]["data_offsets"]
+        body = bytearray(data)
+        body[8 + n + start : 8 + n + end] = b"\xff" * (end - start)
+        path.write_bytes(bytes(body))
     with pytest.raises(CSAInputError) as e:
         load_checkpoint(path)
     assert str(path) in str(e.value)
+    if damage == "nan":
+        assert "encoding.table holds NaN or infinite values" in str(e.value)
+
+
+def test_a_model_with_parameters_that_are_not_finite_is_not_written(tiny_nerf, tmp_path):
+    import copy
+
+    broken = copy.deepcopy(tiny_nerf)
+    with torch.no_grad():
+        next(broken.field.parameters()).view(-1)[0] = float("nan")
+    with pytest.raises(ValueError, match="not finite"):
+        save_checkpoint(broken, tmp_path / "nan.safetensors")
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_missing_checkpoint_is_an_input_error(tmp_path):

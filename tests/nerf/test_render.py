@@ -152,6 +152,43 @@ def test_cli_fit_render_info(tiny_scene, tmp_path, monkeypatch, capsys):
         )
 
 
+def test_cli_render_refuses_a_scene_the_checkpoint_was_not_fitted_to(
+    tiny_nerf, tiny_scene, tmp_path
+):
+    """Rendering another scene's views with a checkpoint gives labels of the wrong room: an
+    error naming the scene folder, before any render and without an output folder."""
+    from csa_core.nerf.checkpoint import save_checkpoint
+    from tests.nerf.conftest import synthetic_scene
+
+    ckpt = tmp_path / "a.safetensors"
+    save_checkpoint(tiny_nerf, ckpt)
+    own = write_scene(tiny_scene, tmp_path / "own")
+    other = write_scene(synthetic_scene(seed=1), tmp_path / "other")
+    render = ["nerf", "render", str(ckpt), "--views", "val", "--quiet", "--no-previews"]
+    with pytest.raises(CSAInputError, match=r"other: frame 0 has another pose than the checkpoint"):
+        _cli([*render, "--scene", str(other), "--out", str(tmp_path / "x")])
+    renamed = copy.deepcopy(tiny_scene)
+    for f in renamed.frames:
+        f.name = f"f{f.name}"
+    renamed_dir = write_scene(renamed, tmp_path / "renamed")
+    with pytest.raises(CSAInputError, match=r"renamed: none of its frames is one the checkpoint"):
+        _cli([*render, "--scene", str(renamed_dir), "--out", str(tmp_path / "x")])
+    assert not (tmp_path / "x").exists()
+    # An existing output is refused before the renders, and --every keeps the check passing.
+    (tmp_path / "taken").mkdir()
+    with pytest.raises(CSAInputError, match="taken: output already exists"):
+        _cli([*render, "--scene", str(own), "--out", str(tmp_path / "taken")])
+    assert _cli([*render, "--scene", str(own), "--every", "2", "--out", str(tmp_path / "ok")]) == 0
+
+
+def test_cli_fit_refuses_a_folder_as_the_checkpoint_before_fitting(tiny_scene, tmp_path):
+    scene_dir = write_scene(tiny_scene, tmp_path / "scene")
+    (tmp_path / "out").mkdir()
+    argv = ["nerf", "fit", str(scene_dir), "--out", str(tmp_path / "out"), "--overwrite", "--quiet"]
+    with pytest.raises(CSAInputError, match="out: is a folder"):
+        _cli(argv)
+
+
 def test_pruned_inference_agrees_with_the_full_composite(tiny_nerf, tiny_scene):
     """The renderer evaluates colour and semantics only where a sample carries weight; its
     output must match compositing every sample (the reference) within a small tolerance."""
