@@ -3,9 +3,12 @@
 Only regular files and folders are extracted. Refused: absolute paths, ``..`` components,
 symbolic and hard links, devices and FIFOs, more than ``max_members`` entries, a member larger
 than ``max_member_bytes``, more than ``max_total_bytes`` in all, zip members whose
-compression ratio exceeds ``max_ratio`` (archive bombs), one path named twice or as both a
-file and a folder, and encrypted or corrupt members (errors never carry the server's paths). Sizes are counted while copying,
-so a header that lies about a size gains nothing.
+compression ratio exceeds ``max_ratio`` (archive bombs), tar extended headers (pax, GNU long
+names) above ``MAX_TAR_HEADER_BYTES`` and sparse tar members (``tarfile`` reads those whole into
+memory before any limit here sees them: a few kilobytes of gzip can declare gigabytes), one path
+named twice or as both a file and a folder, and encrypted or corrupt members (errors never carry
+the server's paths). Sizes are counted while copying, so a header that lies about a size gains
+nothing.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from pathlib import Path, PurePosixPath
 from typing import IO
 
 _CHUNK = 1 << 20
+MAX_TAR_HEADER_BYTES = 64 * 1024  # a pax or GNU long-name header: a path of a few kilobytes at most
+_EXTENDED_HEADERS = (tarfile.XHDTYPE, tarfile.XGLTYPE, tarfile.SOLARIS_XHDTYPE, tarfile.GNUTYPE_LONGNAME, tarfile.GNUTYPE_LONGLINK)
 
 
 class UnsafeArchive(ValueError):
@@ -105,10 +110,33 @@ def _target(root: Path, rel: PurePosixPath) -> Path:
     return dest
 
 
+class _BoundedTarInfo(tarfile.TarInfo):
+    """A tar header that ``tarfile`` parses only when reading it cannot take unbounded memory:
+    extended headers (pax, GNU long names) are read whole before the member they describe, and
+    sparse maps (GNU sparse members, pax sparse 1.0) grow with the data, so an extended header
+    above ``MAX_TAR_HEADER_BYTES`` and sparse members are refused before they are read."""
+
+    @classmethod
+    def frombuf(cls, buf: bytes, encoding: str, errors: str) -> tarfile.TarInfo:
+        info = super().frombuf(buf, encoding, errors)
+        if info.type == tarfile.GNUTYPE_SPARSE:
+            raise UnsafeArchive(f"{info.name!r}: sparse files are not allowed")
+        if info.type in _EXTENDED_HEADERS and info.size > MAX_TAR_HEADER_BYTES:
+            raise UnsafeArchive(f"{info.name!r}: extended header of {info.size} bytes (more than {MAX_TAR_HEADER_BYTES})")
+        return info
+
+    def _proc_gnusparse_10(self, member, pax_headers, archive):  # tarfile's hook for pax sparse 1.0
+        raise UnsafeArchive(f"{member.name!r}: sparse files are not allowed")
+
+
 def _extract_tar(path: Path, root: Path, limits: ArchiveLimits) -> None:
     budget = _Budget(limits)
     try:
-        with tarfile.open(path, mode="r:*") as tf:
+        try:
+            tf = tarfile.open(path, mode="r:*", tarinfo=_BoundedTarInfo)
+        except tarfile.ReadError:  # no tar header, compressed or not (tarfile.is_tarfile's test)
+            raise UnsafeArchive("not a tar or zip archive") from None
+        with tf:
             while (m := tf.next()) is not None:
                 budget.member(m.name)
                 rel = _safe_relpath(m.name)
@@ -116,7 +144,11 @@ def _extract_tar(path: Path, root: Path, limits: ArchiveLimits) -> None:
                     raise UnsafeArchive(f"{m.name!r}: links are not allowed")
                 if not (m.isfile() or m.isdir()):
                     raise UnsafeArchive(f"{m.name!r}: only regular files and folders are allowed")
+                if m.sparse is not None:  # pax sparse 0.0 and 0.1 (bounded by the header size)
+                    raise UnsafeArchive(f"{m.name!r}: sparse files are not allowed")
                 if rel is None:
+                    if m.isfile():  # its data would be skipped unread, uncounted
+                        raise UnsafeArchive(f"{m.name!r}: a file cannot be the archive folder itself")
                     continue
                 budget.claim(m.name, rel, m.isdir())
                 dest = _target(root, rel)
@@ -131,7 +163,9 @@ def _extract_tar(path: Path, root: Path, limits: ArchiveLimits) -> None:
                     raise UnsafeArchive(f"{m.name!r}: cannot be read")
                 with src:
                     budget.copy(src, dest, m.name)
-    except (tarfile.TarError, EOFError, zlib.error, lzma.LZMAError) as e:
+    except UnsafeArchive:
+        raise
+    except (tarfile.TarError, EOFError, RecursionError, ValueError, zlib.error, lzma.LZMAError) as e:  # RecursionError: a chain of extended headers
         raise UnsafeArchive(f"not a readable tar archive ({e})") from None
     except OSError as e:  # the message, never the server's path
         raise UnsafeArchive(f"not a readable tar archive ({_os_problem(e)})") from None
@@ -190,10 +224,8 @@ def extract_archive(path: Path, dest: Path, limits: ArchiveLimits) -> Path:
     try:
         if zipfile.is_zipfile(path):
             _extract_zip(path, root, limits)
-        elif tarfile.is_tarfile(path):
-            _extract_tar(path, root, limits)
         else:
-            raise UnsafeArchive("not a tar or zip archive")
+            _extract_tar(path, root, limits)  # "not a tar or zip archive" when it is neither
     except BaseException:
         shutil.rmtree(root, ignore_errors=True)
         root.mkdir(parents=True, exist_ok=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Iterator
 from typing import Annotated
 
@@ -34,12 +35,17 @@ async def refuse_unknown_form_parts(request: Request) -> None:
     """Refuse a multipart form carrying a part the route does not read (422 naming it and the
     parts the route takes, read from the route's own parameters): FastAPI would drop it
     silently, so a misspelt optional part (``label`` for ``labels``) would store a frame
-    without its labels."""
+    without its labels. A part sent twice is refused too: FastAPI would keep the last one and
+    drop the other without a word."""
     allowed = {param.alias for param in request.scope["route"].dependant.body_params}
     form = await request.form()  # parsed once per request; the route's File/Form reuse it
-    unknown = sorted(key for key in form.keys() if key not in allowed)
+    counts = Counter(key for key, _ in form.multi_items())
+    unknown = sorted(key for key in counts if key not in allowed)
     if unknown:
         raise invalid(unknown[0], f"unknown form part (this route takes {', '.join(sorted(allowed))})")
+    repeated = sorted(key for key, n in counts.items() if n > 1)
+    if repeated:
+        raise invalid(repeated[0], "form part sent more than once (send each part once)")
 
 
 FormPartsChecked = Depends(refuse_unknown_form_parts)

@@ -56,8 +56,15 @@ def not_available(message: str) -> APIError:
     return APIError(501, "not_available", message)
 
 
+def _printable(text: str) -> str:
+    """``text`` as valid UTF-8: a name the client sent as bytes that are not UTF-8 (a tar
+    member's, decoded with surrogate escapes) keeps them as ``\\udcff`` escapes, since an
+    answer holding lone surrogates cannot be encoded at all."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
 def error_body(code: str, message: str, field: str | None = None) -> dict[str, Any]:
-    return {"error": {"code": code, "message": message, "field": field}}
+    return {"error": {"code": code, "message": _printable(message), "field": None if field is None else _printable(field)}}
 
 
 def _field_of(loc: tuple[Any, ...] | list[Any]) -> str:

@@ -66,20 +66,33 @@ def _scene_still_there(db, scene_id: int, scene_ref: str) -> Scene:
     return scene
 
 
-def _store_with_retry(db, services, scene: Scene, name: str, valid, replace: bool):
+def _frame_name(db, scene: Scene, valid) -> str:
+    """The name of a frame uploaded without one: the name its identical content already has
+    (uploads are idempotent), else the next number."""
+    same = db.scalar(select(Frame).where(Frame.scene_id == scene.id, Frame.content_sha256 == digest_of(valid)).limit(1))
+    return same.name if same is not None else next_frame_name(db, scene.id)
+
+
+def _store_with_retry(db, services, scene: Scene, name: str | None, valid, replace: bool):
     """Store a frame; a concurrent identical upload that won the race counts as a re-upload,
-    and a scene deleted meanwhile is a 404 (its frame row cannot be written)."""
+    a frame without a name that lost the race for the next number takes the one after it, and
+    a scene deleted meanwhile is a 404 (its frame row cannot be written)."""
     scene_id, scene_name = scene.id, scene.name
-    for attempt in range(2):
+    attempts = 2 if name is not None else 5
+    for attempt in range(attempts):
         try:
-            outcome = store_frame(db, services.store, scene, name, valid, replace=replace)
+            outcome = store_frame(db, services.store, scene, name if name is not None else _frame_name(db, scene, valid), valid, replace=replace)
             db.commit()
             return outcome
+        except APIError as e:
+            if name is not None or e.status != 409:
+                raise
+            db.rollback()  # the number was taken by a concurrent upload (a frame without a name never conflicts otherwise)
         except (IntegrityError, StaleDataError):  # a concurrent upload, or the scene deleted meanwhile
             db.rollback()
-            scene = _scene_still_there(db, scene_id, scene_name)
-            if attempt:
-                raise _race() from None
+        scene = _scene_still_there(db, scene_id, scene_name)
+        if attempt == attempts - 1:
+            raise _race() from None
     raise AssertionError("unreachable")
 
 
@@ -117,9 +130,6 @@ async def upload_frame(
     if name is not None:
         check_frame_name(name)
     valid = validate_frame(parts, scene_camera(scene), services.settings.max_image_pixels)
-    if name is None:
-        same = db.scalar(select(Frame).where(Frame.scene_id == scene.id, Frame.content_sha256 == digest_of(valid)).limit(1))
-        name = same.name if same is not None else next_frame_name(db, scene.id)
     outcome = _store_with_retry(db, services, scene, name, valid, replace)
     if not outcome.created:
         response.status_code = status.HTTP_200_OK
@@ -171,13 +181,15 @@ def _archive_frames(root: Path) -> Path:
 
 def _color_images(color_dir: Path) -> dict[str, Path]:
     """Frame name -> its colour image in an extracted archive's ``color/`` (the entries
-    ``frame_names`` counts: a .jpg/.jpeg/.png suffix in any case, not hidden). A name with
-    two images (``0.jpg`` and ``0.png``) or an entry that is a folder is refused, naming it."""
+    ``frame_names`` counts: a .jpg/.jpeg/.png suffix in any case, not hidden). A name that is
+    not a valid frame name, a name with two images (``0.jpg`` and ``0.png``) or an entry that
+    is a folder is refused, naming it."""
     found: dict[str, Path] = {}
     for p in sorted(color_dir.iterdir()):
         if p.suffix.lower() not in COLOR_EXTS or p.name.startswith("."):
             continue
         field = f"archive:color/{p.name}"
+        check_frame_name(p.stem, field)  # before frame_names sorts them (digits such as '²' are not numbers)
         if not p.is_file():
             raise invalid(field, "is a folder, not an image file")
         if p.stem in found:
@@ -241,7 +253,6 @@ async def upload_archive(
         valid_frames, skipped = [], []
         limit = st.max_frame_upload_bytes
         for name in names:
-            check_frame_name(name, f"archive:color/{name}")
             color_path = colors[name]
             labels_path = root / "label-nyu40" / f"{name}.png"
             fields = {

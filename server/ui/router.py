@@ -28,7 +28,6 @@ from fastapi import (
     UploadFile,
     status,
 )
-from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
 from starlette.concurrency import run_in_threadpool
@@ -346,7 +345,7 @@ def jobs_page(request: Request, session: PageSession, db: DbDep) -> Response:
 @router.get("/jobs/{job_id}")
 def job_page(
     request: Request,
-    job_id: Annotated[int, PathParam(ge=1, le=2**62)],
+    job_id: jobs.JobId,
     session: PageSession,
     db: DbDep,
 ) -> Response:
@@ -522,7 +521,7 @@ async def predict_preview(
 
 @router.post("/api/jobs/{job_id}/retry", status_code=status.HTTP_202_ACCEPTED)
 def retry_job(
-    job_id: Annotated[int, PathParam(ge=1, le=2**62)], _: ApiSession, db: DbDep
+    job_id: jobs.JobId, _: ApiSession, db: DbDep
 ) -> JobOut:
     """Queue a failed (or cancelled) job again: a new job of the same kind with the same
     resolved parameters; both logs name the other."""

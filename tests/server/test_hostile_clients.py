@@ -213,10 +213,104 @@ def test_archive_errors_never_show_the_servers_paths(http: httpx.Client, api_ser
     assert str(api_server.settings.resolved_work_dir) not in message and "csa-archive" not in message
 
 
+def gnu_tar_of(entries: list[tuple[str, bytes]]) -> bytes:
+    """A GNU-format tar whose names are raw bytes (surrogate escapes), as tar writes them."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w", format=tarfile.GNU_FORMAT, encoding="utf-8", errors="surrogateescape") as tf:
+        for name, data in entries:
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tf.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("member", "field"),
+    [("color/\u00b2.png", "archive:color/\u00b2.png"), ("color/\udcff.png", "archive:color/\\udcff.png")],
+    ids=["superscript-two", "not-utf8"],
+)
+def test_archive_colour_images_with_names_that_are_not_frame_names_are_422(http: httpx.Client, member: str, field: str) -> None:
+    """``'\u00b2'.isdigit()`` is true but ``int('\u00b2')`` fails: sorting the frame names
+    answered 500 before the names were checked. A name in bytes that are not UTF-8 made the
+    error answer itself unencodable (500); it is answered with the bytes escaped."""
+    scene = new_scene(http)
+    r = upload_archive(http, scene, gnu_tar_of([*SCENE.items(), (member, color(seed=5))]))
+    refused(r, 422, field, "must be 1-64 letters")
+    assert frame_count(http, scene) == 0
+
+
 def test_archive_depth_intrinsics_have_the_text_limit(http: httpx.Client) -> None:
     scene = new_scene(http)
     r = upload_archive(http, scene, tar_of([*SCENE.items(), ("intrinsic/intrinsic_depth.txt", b"1 " * 40_000)]))
     refused(r, 413, "archive:intrinsic/intrinsic_depth.txt", "65536 bytes")
+    assert frame_count(http, scene) == 0
+
+
+def tar_header(name: str, kind: bytes, size: int) -> bytes:
+    """One 512-byte tar header block of type ``kind`` declaring ``size`` bytes of data."""
+    info = tarfile.TarInfo(name)
+    info.type, info.size = kind, size
+    return info.tobuf(format=tarfile.GNU_FORMAT)[:512]
+
+
+def gzipped(*blocks: bytes) -> bytes:
+    import gzip
+
+    return gzip.compress(b"".join(blocks), compresslevel=1)
+
+
+@pytest.mark.parametrize(
+    "kind",
+    [tarfile.GNUTYPE_LONGNAME, tarfile.GNUTYPE_LONGLINK, tarfile.XHDTYPE, tarfile.XGLTYPE],
+    ids=["gnu-long-name", "gnu-long-link", "pax", "pax-global"],
+)
+def test_tar_extended_headers_declaring_gigabytes_are_refused_unread(http: httpx.Client, kind: bytes) -> None:
+    """Python's tarfile reads a pax or GNU long-name header into memory whole, before the
+    member it describes reaches any limit of ours: in a gzipped tar a few kilobytes decompress
+    to gigabytes of header. Such a header is refused from its declared size."""
+    scene = new_scene(http)
+    declared = 8 * 1024**3 - 1  # the largest size an octal header field holds
+    data = gzipped(tar_header("././@LongLink", kind, declared), b"a" * 4096, tar_of(list(SCENE.items())))
+    message = refused(upload_archive(http, scene, data), 422, "archive", f"extended header of {declared} bytes")
+    assert "csa-archive" not in message
+    assert frame_count(http, scene) == 0
+
+
+def pax_record(key: str, value: str) -> bytes:
+    body = f" {key}={value}\n"
+    n = len(body) + 1
+    while len(str(n)) + len(body) != n:
+        n += 1
+    return f"{n}{body}".encode()
+
+
+def pax_header(records: bytes, name: str = "pax") -> bytes:
+    return tar_header(name, tarfile.XHDTYPE, len(records)) + records.ljust(-(-len(records) // 512) * 512, b"\0")
+
+
+@pytest.mark.parametrize(
+    ("archive", "problem"),
+    [
+        (lambda: gzipped(tar_header("color/1.png", tarfile.GNUTYPE_SPARSE, 10), tar_of(list(SCENE.items()))), "sparse files are not allowed"),
+        (
+            lambda: gzipped(pax_header(pax_record("GNU.sparse.major", "1") + pax_record("GNU.sparse.minor", "0")), tar_header("color/1.png", tarfile.REGTYPE, 512), b"x\n".ljust(512, b"\0"), tar_of(list(SCENE.items()))),
+            "sparse files are not allowed",
+        ),
+        (
+            lambda: gzipped(pax_header(pax_record("GNU.sparse.map", "a,b") + pax_record("GNU.sparse.size", "9")), tar_header("color/1.png", tarfile.REGTYPE, 0), tar_of(list(SCENE.items()))),
+            "not a readable tar archive",
+        ),
+        (lambda: gzipped(pax_header(pax_record("comment", "x")) * 2000, tar_of(list(SCENE.items()))), "not a readable tar archive"),
+        (lambda: tar_of([(".", b"x" * 100), *SCENE.items()]), "a file cannot be the archive folder itself"),
+    ],
+    ids=["gnu-sparse", "pax-sparse-1.0", "pax-sparse-map-garbage", "chain-of-2000-pax-headers", "file-named-dot"],
+)
+def test_tar_members_that_tarfile_cannot_read_safely_are_refused(http: httpx.Client, archive, problem: str) -> None:
+    """Sparse maps grow with the data that follows them (unbounded memory) and malformed ones
+    raised ValueError; a chain of extended headers raised RecursionError; a file named ``.``
+    had its data skipped without being counted: all answered 500 or ran unbounded."""
+    scene = new_scene(http)
+    refused(upload_archive(http, scene, archive()), 422, "archive", problem)
     assert frame_count(http, scene) == 0
 
 
@@ -340,6 +434,38 @@ def test_an_upload_racing_the_deletion_of_its_scene_is_404(http: httpx.Client, a
     assert http.get(f"/api/v1/scenes/{scene}").status_code == 404
 
 
+def test_a_frame_without_a_name_that_loses_the_race_for_its_number_takes_the_next(http: httpx.Client, api_server: LiveServer, monkeypatch) -> None:
+    """Another API process stores a frame under the number this upload was about to take: the
+    upload answered 409 telling the client, who sent no name, to overwrite that frame with
+    replace=true. It takes the next number instead, and both frames are kept."""
+    import dataclasses
+
+    from server.db.models import Scene
+    from server.routers import frames
+
+    scene = new_scene(http)
+    assert upload_frame(http, scene, "0").status_code == 201
+    real = frames.store_frame
+    raced: list[str] = []
+
+    def another_process_first(db, store, row, name, valid, *args, **kwargs):
+        if not raced:
+            raced.append(name)
+            with api_server.services.sessions() as other:
+                moved = valid.pose.copy()
+                moved[0, 3] += 1.0
+                real(other, store, other.get(Scene, row.id), name, dataclasses.replace(valid, pose=moved))
+                other.commit()
+        return real(db, store, row, name, valid, *args, **kwargs)
+
+    monkeypatch.setattr(frames, "store_frame", another_process_first)
+    r = http.post(f"/api/v1/scenes/{scene}/frames", files={k: (k, v, "application/octet-stream") for k, v in {"color": color(seed=9), "depth": depth(), "pose": POSE.encode()}.items()})
+    monkeypatch.undo()
+    assert raced == ["1"]
+    assert r.status_code == 201 and r.json()["name"] == "2", r.text[:300]
+    assert [f["name"] for f in http.get(f"/api/v1/scenes/{scene}/frames").json()] == ["0", "1", "2"]
+
+
 # --- job parameters ------------------------------------------------------------------------
 
 
@@ -433,6 +559,28 @@ def test_form_parts_a_route_does_not_read_are_refused(http: httpx.Client, route:
         url = {"archive": f"/api/v1/scenes/{scene}/archive", "models": "/api/v1/models", "predict": "/api/v1/predict"}[route]
     r = http.post(url, files={k: (k, v, "application/octet-stream") for k, v in files.items()}, data=data)
     refused(r, 422, field, "unknown form part")
+    assert frame_count(http, scene) == 0
+
+
+@pytest.mark.parametrize(
+    ("route", "parts", "field"),
+    [
+        ("frames", [("color", color(seed=21)), ("color", color(seed=22))], "color"),
+        ("frames", [("labels", labels(3)), ("labels", labels(5))], "labels"),
+        ("frames", [], "name"),  # two text fields: name=a&name=b
+        ("archive", [("archive", tar_of(list(SCENE.items()))), ("archive", b"junk")], "archive"),
+    ],
+    ids=["two-colours", "two-labels", "two-names", "two-archives"],
+)
+def test_form_parts_sent_twice_are_refused(http: httpx.Client, route: str, parts: list, field: str) -> None:
+    """FastAPI keeps the last of two same-named parts and drops the other silently: a frame
+    could be stored with the labels the client did not mean. Every multipart route names the part."""
+    scene = new_scene(http)
+    base = [("color", color()), ("depth", depth()), ("pose", POSE.encode()), ("intrinsics", K.encode())] if route == "frames" else []
+    sent = [p for p in base if p[0] not in {name for name, _ in parts}] + parts
+    files = [(name, (name, data, "application/octet-stream")) for name, data in sent]
+    data = {"name": ["a", "b"]} if field == "name" else {}
+    refused(http.post(f"/api/v1/scenes/{scene}/{route}", files=files, data=data), 422, field, "sent more than once")
     assert frame_count(http, scene) == 0
 
 

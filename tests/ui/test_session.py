@@ -244,6 +244,19 @@ def test_retry_queues_a_copy_of_a_cancelled_job_and_refuses_others(
         assert c.post("/ui/api/jobs/999999/retry", headers=csrf).status_code == 404
 
 
+def test_dashboard_job_ids_have_the_api_s_range(live: LiveServer) -> None:
+    """The job page and retry took ids up to 2**62, beyond the database's 32-bit ids (a
+    PostgreSQL error instead of an answer naming the id); they take the REST API's range."""
+    c, token = signed_in(live)
+    with closing(c):
+        for r in (
+            c.get(f"/ui/jobs/{2**40}"),
+            c.post(f"/ui/api/jobs/{2**40}/retry", headers={"X-CSRF-Token": token}),
+        ):
+            assert r.status_code == 422 and r.json()["error"]["field"] == "job_id", r.text[:300]
+        assert c.get("/ui/jobs/2147483647").status_code == 404
+
+
 def test_pages_escape_what_users_wrote(live: LiveServer) -> None:
     c, _ = signed_in(live)
     with closing(c), live.client() as api:
