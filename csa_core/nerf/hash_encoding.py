@@ -11,6 +11,8 @@ combined by broadcasting, which is ~8x less integer work than hashing 8 corners;
 pass is one ``embedding_bag`` (gather + weighted sum), the backward pass one ``index_add_``.
 No gradient flows to the positions (the poses are fixed). Without autograd (rendering), large
 batches are encoded in cache-sized blocks (``INFERENCE_BLOCK``).
+On a CPU, float32 positions go through the fused C kernel of ``hash_kernel.py`` instead (same
+arithmetic; ``HashEncodingConfig.implementation``); this module's path is its reference.
 """
 
 from __future__ import annotations
@@ -111,7 +113,6 @@ class HashEncoding(nn.Module):
         self.level_sizes = sizes
         self._num_dense = sum(dense)
         self._hash_mask = table_size - 1
-        self._layout = hash_kernel.LevelLayout(resolutions, offsets, self._num_dense, table_size - 1)
         self.register_buffer(
             "resolutions", torch.tensor(resolutions, dtype=torch.float32), persistent=False
         )
@@ -202,6 +203,10 @@ class HashEncoding(nn.Module):
         table = self.table if table is None else table
         return self.cfg.implementation == "auto" and hash_kernel.usable(x, table)
 
+    def kernel_layout(self) -> hash_kernel.LevelLayout:
+        """This encoding's level layout as the C kernel reads it (its own int32 buffers)."""
+        return hash_kernel.LevelLayout(self._res_int, self._offsets, self._num_dense, self._hash_mask)
+
     def forward(
         self,
         x: Tensor,
@@ -216,10 +221,11 @@ class HashEncoding(nn.Module):
         n = x.shape[0]
         main = self.table.detach() if detach_main else self.table
         if self.uses_kernel(x, main) and (extra is None or hash_kernel.usable(x, extra)):
-            feats = hash_kernel.encode(x, main, self.cfg.num_levels, self._layout)
+            layout = self.kernel_layout()
+            feats = hash_kernel.encode(x, main, self.cfg.num_levels, layout)
             if extra is None:
                 return feats
-            return feats, hash_kernel.encode(x, extra, extra_levels, self._layout)
+            return feats, hash_kernel.encode(x, extra, extra_levels, layout)
         if n > INFERENCE_BLOCK and not torch.is_grad_enabled():
             parts = [
                 self(x[i : i + INFERENCE_BLOCK], extra, extra_levels, detach_main)

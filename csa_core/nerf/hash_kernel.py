@@ -32,6 +32,7 @@ import subprocess
 import tempfile
 import threading
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -200,15 +201,15 @@ def usable(x: Tensor, table: Tensor) -> bool:
     )
 
 
-class LevelLayout:
-    """What the kernel needs of an encoding: per-level resolutions and row offsets (int32),
-    how many leading levels are dense, and the hash mask."""
+class LevelLayout(NamedTuple):
+    """What the kernel needs of an encoding (``HashEncoding.kernel_layout``, from its buffers):
+    per-level resolutions and row offsets (int32 CPU tensors), how many leading levels are
+    dense, and the hash mask."""
 
-    def __init__(self, resolutions: list[int], offsets: list[int], num_dense: int, mask: int):
-        self.res = torch.tensor(resolutions, dtype=torch.int32)
-        self.offsets = torch.tensor(offsets, dtype=torch.int32)
-        self.num_dense = num_dense
-        self.mask = mask
+    res: Tensor
+    offsets: Tensor
+    num_dense: int
+    mask: int
 
 
 def _ptr(t: Tensor) -> int:
