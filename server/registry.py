@@ -15,7 +15,8 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from server.artifacts import ArtifactStore
-from server.db.models import ModelVersion
+from server.db.models import Job, ModelVersion
+from server.jobs.queue import QUEUED, RUNNING
 
 CHECKPOINT_FILE = "model.safetensors"
 BATCHNORM_FILE = "batchnorm_memory.safetensors"
@@ -91,3 +92,17 @@ def lineage_chain(session: Session, lineage: str) -> list[ModelVersion]:
     while children := by_parent.get(chain[-1].id):
         chain.append(children[-1])
     return chain
+
+
+def pending_root(session: Session, name: str, lineage: str) -> tuple[str, str] | None:
+    """``(field, problem)`` when a queued or running pre-training will register a version
+    named ``name`` (field ``name``) or the root of ``lineage`` (field ``lineage``) once it
+    ends: the registry does not hold them yet, but taking them meanwhile would make a second
+    root of the lineage, or fail that job on the name after all its training."""
+    active = select(Job).where(Job.kind == "pretrain", Job.status.in_((QUEUED, RUNNING))).order_by(Job.id)
+    for job in session.scalars(active):
+        if (job.params or {}).get("name") == name:
+            return "name", f"job {job.id} ({job.status}) registers a model version named {name!r} when it ends"
+        if job.lineage == lineage:
+            return "lineage", f"job {job.id} ({job.status}) starts lineage {lineage!r} when it ends"
+    return None

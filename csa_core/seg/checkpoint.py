@@ -27,6 +27,23 @@ from csa_core.seg.models import ARCHS, IMAGENET_MEAN, IMAGENET_STD, Segmentation
 
 FORMAT = "csa-seg-checkpoint/1"
 _HEADER_KEY = "csa"
+# Lists and objects nest at most this deep in a card (ours nest a few levels): a card is read
+# from a file anyone may have written, and JSON nested about as deep as Python's recursion
+# limit fails to parse with RecursionError, or parses and then fails wherever it is encoded.
+MAX_CARD_DEPTH = 32
+# How a safetensors header names the dtypes of torch tensors.
+_DTYPE_NAMES = {
+    torch.float64: "F64",
+    torch.float32: "F32",
+    torch.float16: "F16",
+    torch.bfloat16: "BF16",
+    torch.int64: "I64",
+    torch.int32: "I32",
+    torch.int16: "I16",
+    torch.int8: "I8",
+    torch.uint8: "U8",
+    torch.bool: "BOOL",
+}
 
 
 @dataclass
@@ -78,11 +95,28 @@ class ModelCard:
 
     @classmethod
     def from_json(cls, text: str) -> ModelCard:
-        data = json.loads(text)
+        try:
+            data = json.loads(text)
+        except RecursionError:
+            raise ValueError(f"lists and objects nest more than {MAX_CARD_DEPTH} levels deep") from None
+        if _depth(data) > MAX_CARD_DEPTH:
+            raise ValueError(f"lists and objects nest more than {MAX_CARD_DEPTH} levels deep")
         if not isinstance(data, dict):
             raise ValueError("model card is not a JSON object")
         known = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in known})
+
+
+def _depth(value: Any) -> int:
+    """How deeply lists and objects nest in parsed JSON (without recursion: any depth)."""
+    deepest, todo = 0, [(value, 1)]
+    while todo:
+        item, level = todo.pop()
+        children = item.values() if isinstance(item, dict) else item if isinstance(item, list) else None
+        if children is not None:
+            deepest = max(deepest, level)
+            todo.extend((child, level + 1) for child in children)
+    return deepest
 
 
 def _jsonable(value: Any) -> Any:
@@ -148,9 +182,27 @@ def read_safetensors(path: str | Path) -> tuple[dict[str, Tensor], dict[str, str
     return tensors, metadata
 
 
+def read_safetensors_header(path: str | Path) -> tuple[dict[str, tuple[str, tuple[int, ...]]], dict[str, str]]:
+    """Each tensor's (safetensors dtype such as ``F32``, shape) and the string metadata of a
+    safetensors file, from its header alone: no tensor is read."""
+    path = Path(path)
+    if not path.is_file():
+        raise CSAInputError(path, "checkpoint file not found")
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            metadata = dict(f.metadata() or {})
+            layout = {}
+            for name in f.keys():
+                view = f.get_slice(name)
+                layout[name] = (str(view.get_dtype()), tuple(int(n) for n in view.get_shape()))
+    except (SafetensorError, OSError, RuntimeError, ValueError) as e:
+        raise CSAInputError(path, f"not a readable safetensors file ({e})") from None
+    return layout, metadata
+
+
 def read_model_card(path: str | Path) -> ModelCard:
-    """The card of a checkpoint, without building the network."""
-    _, metadata = read_safetensors(path)
+    """The card of a checkpoint, without building the network or reading its tensors."""
+    _, metadata = read_safetensors_header(path)
     return _card_from_metadata(path, metadata)
 
 
@@ -212,27 +264,26 @@ def load_checkpoint(
     """Rebuild the network stored at ``path``; returns it in eval mode on ``device`` with its card.
 
     A missing, truncated or foreign file, or weights that do not fit the card's architecture,
-    raise :class:`CSAInputError` naming the file.
+    raise :class:`CSAInputError` naming the file; names, dtypes and shapes are checked from
+    the header, before any tensor is read.
     """
-    tensors, metadata = read_safetensors(path)
+    layout, metadata = read_safetensors_header(path)
     card = _card_from_metadata(path, metadata)
     model = build_model(card.arch, num_classes=card.num_classes, mean=card.mean, std=card.std)
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(tensors))
-    unexpected = sorted(set(tensors) - set(expected))
+    expected = {k: (_DTYPE_NAMES.get(v.dtype, str(v.dtype)), tuple(v.shape)) for k, v in model.state_dict().items()}
+    missing = sorted(set(expected) - set(layout))
+    unexpected = sorted(set(layout) - set(expected))
     if missing or unexpected:
         detail = f"missing {missing[:3]}" if missing else f"unexpected {unexpected[:3]}"
         raise CSAInputError(path, f"weights do not match {card.arch}: {detail}")
-    wrong = [
-        k
-        for k, v in tensors.items()
-        if v.shape != expected[k].shape or v.dtype != expected[k].dtype
-    ]
+    wrong = [k for k, v in layout.items() if v != expected[k]]
     if wrong:
         k = wrong[0]
         raise CSAInputError(
             path,
-            f"tensor {k} is {tensors[k].dtype} {tuple(tensors[k].shape)}, {card.arch} needs {expected[k].dtype} {tuple(expected[k].shape)}",
+            f"tensor {k} is {layout[k][0]} {layout[k][1]}, {card.arch} needs {expected[k][0]} {expected[k][1]}",
         )
+    # The header matches the network: only now are the tensors read.
+    tensors, _ = read_safetensors(path)
     model.load_state_dict(tensors)
     return model.to(device).eval(), card

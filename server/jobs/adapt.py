@@ -20,6 +20,7 @@ from the version the previous step made.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any
 
@@ -35,6 +36,8 @@ from server.lookups import get_model, get_scene
 from server.memory_bank import StoredNerfMemory, add_nerf, lineage_nerfs
 from server.registry import BATCHNORM_FILE, CHECKPOINT_FILE, lineage_chain, register_checkpoint
 from server.schemas.jobs import AdaptParams
+
+MAX_NAME_LENGTH = ModelVersion.__table__.c.name.type.length  # of a model version's name
 
 
 def prepare(session: Session, params: AdaptParams, job: Job) -> tuple[dict[str, Any], str | None]:
@@ -55,6 +58,18 @@ def prepare(session: Session, params: AdaptParams, job: Job) -> tuple[dict[str, 
 def _labelled(session: Session, scene_id: int) -> bool:
     rows = session.execute(select(Frame.labels_sha256).where(Frame.scene_id == scene_id)).all()
     return bool(rows) and all(sha is not None for (sha,) in rows)
+
+
+def step_name(session: Session, lineage: str, step: int) -> str:
+    """The name of the version a lineage's ``step``-th adaptation registers: ``<lineage>-step<n>``,
+    the lineage cut to fit the names' length, and ``.2``, ``.3``... after it while another
+    version holds the name (clients name their uploads and pre-trainings freely)."""
+    for k in itertools.count(1):
+        suffix = f"-step{step}" + (f".{k}" if k > 1 else "")
+        name = lineage[: MAX_NAME_LENGTH - len(suffix)] + suffix
+        if session.scalar(select(ModelVersion.id).where(ModelVersion.name == name)) is None:
+            return name
+    raise AssertionError("unreachable")
 
 
 def _finite(x: float | None) -> float | None:
@@ -157,7 +172,7 @@ def run(ctx: JobContext) -> None:
             s,
             ctx.store,
             out,
-            name=f"{p['lineage']}-step{n}",
+            name=step_name(s, p["lineage"], n),
             lineage=p["lineage"],
             arch=arch,
             parent_id=base_id,

@@ -13,7 +13,7 @@ from server.errors import conflict, invalid
 from server.jobs.context import JobContext
 from server.jobs.inputs import check_size, load_scene, torch_device
 from server.lookups import get_scenes, require_ground_truth
-from server.registry import register_checkpoint
+from server.registry import pending_root, register_checkpoint
 from server.schemas.jobs import PretrainParams
 
 
@@ -40,6 +40,9 @@ def prepare(session: Session, params: PretrainParams, job: Job) -> tuple[dict[st
         raise conflict(f"a model version named {name!r} exists", field="params.name")
     if session.scalar(select(ModelVersion.id).where(ModelVersion.lineage == lineage)) is not None:
         raise conflict(f"lineage {lineage!r} exists; a pre-training starts a new lineage", field="params.lineage")
+    pending = pending_root(session, name, lineage)
+    if pending is not None:
+        raise conflict(pending[1], field=f"params.{pending[0]}")
     normalized = {
         "scene_ids": [s.id for s in scenes],
         "val_scene_ids": [s.id for s in val],

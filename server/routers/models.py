@@ -22,7 +22,7 @@ from server.db.models import Evaluation, ModelVersion, Scene
 from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import conflict, invalid, not_available, too_large
 from server.lookups import get_model
-from server.registry import checkpoint_sha, register_checkpoint, set_current
+from server.registry import checkpoint_sha, pending_root, register_checkpoint, set_current
 from server.schemas.common import ERROR_RESPONSES, Name
 from server.schemas.models import ModelOut
 
@@ -110,6 +110,9 @@ async def register_model(
     lineage = lineage or name
     if db.scalar(select(ModelVersion.id).where(ModelVersion.lineage == lineage)) is not None:
         raise conflict(f"lineage {lineage!r} exists; an uploaded checkpoint starts a new lineage", field="lineage")
+    pending = pending_root(db, name, lineage)
+    if pending is not None:
+        raise conflict(pending[1], field=pending[0])
     limit = services.settings.max_model_upload_bytes
     tmp = Path(tempfile.mkdtemp(prefix="csa-model-", dir=services.settings.resolved_work_dir))
     try:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import math
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -35,6 +36,7 @@ from server.lookups import active_nerf, get_model
 from server.model_cache import ModelCache
 from server.nerf_cache import NerfCache
 from server.registry import checkpoint_sha
+from server.routers.rendering import MAX_RENDER_PIXELS
 
 Panel = Literal["prediction", "pseudo", "truth", "overlay"]
 PANELS: tuple[str, ...] = ("prediction", "pseudo", "truth", "overlay")
@@ -144,6 +146,17 @@ def panel_source(db: Session, scene: Scene, frame: Frame, panel: str) -> PanelSo
     )
 
 
+def render_camera(intr: Intrinsics) -> Intrinsics:
+    """The camera a frame's pseudo-labels are rendered at: the frame's, scaled down (same
+    aspect ratio) to at most the render route's :data:`MAX_RENDER_PIXELS`, since a view holds
+    class scores for every pixel; the labels are then resized to the frame."""
+    pixels = intr.width * intr.height
+    if pixels <= MAX_RENDER_PIXELS:
+        return intr
+    s = math.sqrt(MAX_RENDER_PIXELS / pixels)
+    return intr.scaled(max(1, int(intr.width * s)), max(1, int(intr.height * s)))
+
+
 def draw_panel(
     src: PanelSource, store: ArtifactStore, models: ModelCache, nerfs: NerfCache, maps: LabelMaps
 ) -> bytes:
@@ -158,9 +171,8 @@ def draw_panel(
         if src.nerf_id is not None:
             assert src.nerf_files and src.pose is not None and src.intrinsics is not None
             pose = np.asarray(src.pose, dtype=np.float64)
-            view = nerfs.render(
-                src.nerf_id, src.nerf_files, pose, Intrinsics.from_dict(src.intrinsics)
-            )
+            camera = render_camera(Intrinsics.from_dict(src.intrinsics))
+            view = nerfs.render(src.nerf_id, src.nerf_files, pose, camera)
             labels = view["labels"].astype(np.uint8)
         else:
             assert src.model_sha is not None

@@ -10,6 +10,7 @@ SQLite only, no worker (queued jobs never run): the rules live in the request pa
 
 from __future__ import annotations
 
+import functools
 import io
 import itertools
 import json
@@ -406,6 +407,95 @@ def test_forged_model_cards_are_refused_at_upload(http: httpx.Client, card: dict
     assert http.get("/api/v1/models").json() == before
 
 
+@functools.cache
+def network_weights() -> dict:
+    """The tensors of the base card's network (untrained), as a checkpoint holds them."""
+    from csa_core.seg.models import build_model
+
+    return {k: v.contiguous() for k, v in build_model(BASE_CARD["arch"]).state_dict().items()}
+
+
+def upload_checkpoint(http: httpx.Client, data: bytes) -> httpx.Response:
+    files = {"checkpoint": ("m.safetensors", data, "application/octet-stream")}
+    return http.post("/api/v1/models", files=files, data={"name": f"upload-{next(_names)}"})
+
+
+@pytest.mark.parametrize("spoil", ["extra-tensor", "shape", "dtype"])
+def test_checkpoints_that_do_not_fit_the_network_are_refused_from_the_header(http: httpx.Client, monkeypatch, spoil: str) -> None:
+    """Every tensor of an uploaded checkpoint was read, twice (for the card, then for the
+    network), before its names, shapes and dtypes were compared with the card's network: a
+    file whose header alone shows it cannot fit cost memory in proportion to the upload limit.
+    It is refused from the header; no tensor is read."""
+    import torch
+    from safetensors.torch import save
+
+    from csa_core.seg import checkpoint
+
+    tensors = dict(network_weights())
+    k = next(k for k, v in tensors.items() if v.dtype == torch.float32 and v.ndim == 4)
+    if spoil == "extra-tensor":
+        tensors["extra"], problem = torch.zeros(1), "weights do not match lraspp_mobilenet_v3_large: unexpected ['extra']"
+    elif spoil == "shape":
+        tensors[k] = torch.zeros(tensors[k].shape[0] + 1, *tensors[k].shape[1:])
+        problem = f"tensor {k} is F32 ({tensors[k].shape[0]}, "
+    else:
+        tensors[k], problem = tensors[k].double(), f"tensor {k} is F64 {tuple(tensors[k].shape)}, lraspp_mobilenet_v3_large needs F32"
+    data = save(tensors, metadata={"csa": json.dumps(BASE_CARD)})
+    reads: list[str] = []
+    real = checkpoint.read_safetensors
+    monkeypatch.setattr(checkpoint, "read_safetensors", lambda path: reads.append(str(path)) or real(path))
+    refused(upload_checkpoint(http, data), 422, "checkpoint", problem)
+    assert reads == []
+
+
+def raw_safetensors(header: bytes, data: bytes = b"", declared: int | None = None) -> bytes:
+    """A safetensors file as bytes: the header's length (or ``declared``), header, data."""
+    import struct
+
+    return struct.pack("<Q", len(header) if declared is None else declared) + header + data
+
+
+@pytest.mark.parametrize(
+    "data",
+    [
+        raw_safetensors(b"{}", declared=10**6),
+        raw_safetensors(b'{"__metadata__": {"csa": "\xff\xfe"}}'),
+        raw_safetensors(json.dumps({"x": {"dtype": "F32", "shape": [2**40], "data_offsets": [0, 4]}}).encode(), b"\0" * 4),
+        raw_safetensors(json.dumps({"x": {"dtype": "F32", "shape": [2**62, 2**62], "data_offsets": [0, 4]}}).encode(), b"\0" * 4),
+        raw_safetensors(json.dumps({"x": {"dtype": "F99", "shape": [1], "data_offsets": [0, 4]}}).encode(), b"\0" * 4),
+    ],
+    ids=["header-longer-than-file", "metadata-not-utf8", "tensor-of-4-tib", "shape-overflows", "unknown-dtype"],
+)
+def test_malformed_safetensors_headers_are_refused_unread(http: httpx.Client, monkeypatch, data: bytes) -> None:
+    from csa_core.seg import checkpoint
+
+    reads: list[str] = []
+    real = checkpoint.read_safetensors
+    monkeypatch.setattr(checkpoint, "read_safetensors", lambda path: reads.append(str(path)) or real(path))
+    message = refused(upload_checkpoint(http, data), 422, "checkpoint", "not a readable safetensors file")
+    assert reads == [] and "/tmp" not in message
+
+
+def nested_card(depth: int) -> str:
+    """A card whose metrics nest ``depth`` objects deep, as text (json.dumps would recurse)."""
+    return json.dumps(BASE_CARD)[:-1] + ', "metrics": ' + '{"m": ' * depth + "1" + "}" * depth + "}"
+
+
+@pytest.mark.parametrize("depth", [33, 700, 100_000])
+def test_model_cards_nested_deeper_than_a_card_are_refused(http: httpx.Client, depth: int) -> None:
+    """A card nested 100000 levels deep answered 500: parsing it raises RecursionError, which
+    is not a ValueError. One nested 700 levels deep parsed and was registered, and from then
+    on every listing of the models answered 500 (too deep to serialise). Cards nest a few
+    levels; more than 32 is refused, naming the rule, and nothing is registered."""
+    from safetensors.torch import save
+
+    data = save(network_weights(), metadata={"csa": nested_card(depth)})
+    before = http.get("/api/v1/models").json()
+    refused(upload_checkpoint(http, data), 422, "checkpoint", "model card is not valid", "nest more than 32 levels deep")
+    after = http.get("/api/v1/models")
+    assert after.status_code == 200 and after.json() == before
+
+
 # --- a scene deleted while a frame is being stored -----------------------------------------
 
 
@@ -532,6 +622,58 @@ def test_jobs_at_the_frames_size_or_smaller_are_queued(http: httpx.Client, scene
         r = http.post("/api/v1/jobs", json=body)
         assert r.status_code == 202, r.text[:300]
         assert http.post(f"/api/v1/jobs/{r.json()['id']}/cancel").json()["status"] == "cancelled"
+
+
+def test_a_name_or_lineage_a_queued_pretrain_will_register_is_taken(http: httpx.Client, scenes) -> None:
+    """Only the registry was asked whether a name or lineage was free: a second pre-training
+    (or an uploaded checkpoint) with the lineage of a queued one was accepted, and registered
+    a second root of that lineage (versions the continual chain never reaches); one with its
+    name trained for hours and then failed on the name. Both are 409 naming the field, and
+    free again once the first job has ended."""
+    labelled, _, _ = scenes
+    tag = f"claimed-{next(_names)}"
+    pretrain = lambda **p: http.post("/api/v1/jobs", json={"kind": "pretrain", "params": {"scenes": [labelled], "epochs": 1, **p}})  # noqa: E731
+    first = pretrain(name=tag)  # lineage: the name
+    assert first.status_code == 202, first.text[:300]
+    jobs_before, models_before = len(http.get("/api/v1/jobs").json()), http.get("/api/v1/models").json()
+    job = first.json()["id"]
+    refused(pretrain(name=f"{tag}-b", lineage=tag), 409, "params.lineage", tag, f"job {job}")
+    refused(pretrain(name=tag, lineage=f"{tag}-other"), 409, "params.name", tag, f"job {job}")
+    for data, field in (({"name": f"{tag}-c", "lineage": tag}, "lineage"), ({"name": tag, "lineage": f"{tag}-other"}, "name")):
+        r = http.post("/api/v1/models", files={"checkpoint": ("m.safetensors", b"never read", "application/octet-stream")}, data=data)
+        refused(r, 409, field, tag, f"job {job}")
+    assert len(http.get("/api/v1/jobs").json()) == jobs_before and http.get("/api/v1/models").json() == models_before
+    assert http.post(f"/api/v1/jobs/{job}/cancel").json()["status"] == "cancelled"
+    again = pretrain(name=f"{tag}-b", lineage=tag)
+    assert again.status_code == 202, again.text[:300]
+    http.post(f"/api/v1/jobs/{again.json()['id']}/cancel")
+
+
+def test_adaptation_steps_name_their_version_with_a_free_name_that_fits(tmp_path: Path) -> None:
+    """A step registered its version as ``<lineage>-step<n>`` at the very end of the job: a
+    client who had uploaded a model of that name (any lineage) made every step of the lineage
+    fail there, after all its work, since the next try computes the same name; and a lineage
+    named with 128 characters (a valid name) made a name longer than the column holds."""
+    from sqlalchemy import create_engine
+    from sqlalchemy.orm import Session
+
+    from server.db.models import Base, ModelVersion
+    from server.jobs.adapt import step_name
+
+    engine = create_engine(f"sqlite:///{tmp_path / 'db.sqlite'}")
+    Base.metadata.create_all(engine)
+    with Session(engine) as s:
+        for name in ("base-step1", "base-step1.2"):  # squatters, in lineages of their own
+            s.add(ModelVersion(name=name, lineage=name, files={}, arch="x"))
+        s.commit()
+        assert step_name(s, "base", 1) == "base-step1.3"
+        assert step_name(s, "base", 2) == "base-step2"
+        long = "L" * 128
+        assert step_name(s, long, 12) == "L" * 121 + "-step12"
+        s.add(ModelVersion(name="L" * 121 + "-step12", lineage=long, files={}, arch="x"))
+        s.commit()
+        assert step_name(s, long, 12) == "L" * 119 + "-step12.2"
+    engine.dispose()
 
 
 # --- form parts a route does not read ----------------------------------------------------

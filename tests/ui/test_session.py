@@ -244,6 +244,35 @@ def test_retry_queues_a_copy_of_a_cancelled_job_and_refuses_others(
         assert c.post("/ui/api/jobs/999999/retry", headers=csrf).status_code == 404
 
 
+def test_a_pretrain_is_not_retried_while_a_copy_of_it_is_queued(
+    live: LiveServer, tmp_path
+) -> None:
+    """Retry queued a copy without asking whether the job's model name and lineage were still
+    free: two retries of a cancelled pre-training queued two jobs that would each register a
+    root of one lineage (the second failing on the name after all its training)."""
+    from csa_core.data.synth import synthesize
+
+    (folder,) = synthesize(tmp_path, scenes=1, frames=3, size=(24, 18), family="office", seed=6)
+    c, token = signed_in(live)
+    csrf = {"X-CSRF-Token": token}
+    with closing(c), live.client() as api:
+        api.upload_scene_folder(folder)
+        params = {"scenes": [folder.name], "epochs": 1, "name": "retried-once"}
+        job = c.post("/ui/api/v1/jobs", json={"kind": "pretrain", "params": params}, headers=csrf)
+        assert job.status_code == 202, job.text[:300]
+        api.cancel_job(job.json()["id"])
+        copy = c.post(f"/ui/api/jobs/{job.json()['id']}/retry", headers=csrf)
+        assert copy.status_code == 202, copy.text[:300]
+        twice = c.post(f"/ui/api/jobs/{job.json()['id']}/retry", headers=csrf)
+        assert twice.status_code == 409, twice.text[:300]
+        error = twice.json()["error"]
+        assert error["field"] == "params.name" and f"job {copy.json()['id']}" in error["message"]
+        api.cancel_job(copy.json()["id"])
+        third = c.post(f"/ui/api/jobs/{job.json()['id']}/retry", headers=csrf)
+        assert third.status_code == 202, third.text[:300]
+        api.cancel_job(third.json()["id"])
+
+
 def test_dashboard_job_ids_have_the_api_s_range(live: LiveServer) -> None:
     """The job page and retry took ids up to 2**62, beyond the database's 32-bit ids (a
     PostgreSQL error instead of an answer naming the id); they take the REST API's range."""
