@@ -123,6 +123,17 @@ def test_eval_miou_command(tmp_path, capsys):
     summary = json.loads((tmp_path / "m.json").read_text())
     assert summary["miou"] == pytest.approx((2 / 3 + 3 / 4 + 1) / 3)
     assert "mIoU" in out
+    # a render of some views against the scene's whole label folder
+    (tmp_path / "pred" / "1.png").unlink()
+    code, _, err = run(capsys, "eval", "miou", str(tmp_path / "pred"), str(tmp_path / "gt"))
+    assert code != 0 and "no prediction for 1 ground-truth frame(s): 1" in err
+    args = ["eval", "miou", "--predicted-only", str(tmp_path / "pred"), str(tmp_path / "gt")]
+    code, out, _ = run(capsys, *args, "--json", str(tmp_path / "m0.json"))
+    assert code == 0
+    # frame 0 alone: class 1 tp 1, fn 1 -> 1/2; class 2 tp 2, fp 1 -> 2/3
+    summary = json.loads((tmp_path / "m0.json").read_text())
+    assert summary["num_frames"] == 1
+    assert summary["miou"] == pytest.approx((1 / 2 + 2 / 3) / 2)
 
 
 @pytest.mark.parametrize(

@@ -136,11 +136,15 @@ def _label_files(folder: Path) -> dict[str, Path]:
     return dict(sorted(files.items(), key=lambda kv: _frame_sort_key(kv[0])))
 
 
-def evaluate_label_folders(pred_dir: str | Path, gt_dir: str | Path) -> dict[str, Any]:
+def evaluate_label_folders(
+    pred_dir: str | Path, gt_dir: str | Path, predicted_only: bool = False
+) -> dict[str, Any]:
     """Score a folder of predicted label maps against a ground-truth folder (``<frame>.png``).
 
     Frames are matched by file stem; every ground-truth frame must have a prediction (extra
-    predictions are ignored and never read). Maps are read one pair at a time by the scene
+    predictions are ignored and never read). With ``predicted_only`` the frames scored are the
+    prediction folder's instead (e.g. a render of a scene's training views against the scene's
+    whole label folder), and every one of them must have a ground truth. Maps are read one pair at a time by the scene
     reader's :func:`read_label_image`, so the same files are accepted (single-channel 8- or
     16-bit PNG, ids 0..40). Returns :meth:`ConfusionMatrix.summary` plus ``num_frames``.
     Raises :class:`CSAInputError` naming the file for unreadable, multi-channel or
@@ -151,6 +155,16 @@ def evaluate_label_folders(pred_dir: str | Path, gt_dir: str | Path) -> dict[str
     pred_files = _label_files(pred_dir)
     if not gt_files:
         raise CSAInputError(gt_dir, "no label maps (*.png) found")
+    if predicted_only:
+        if not pred_files:
+            raise CSAInputError(pred_dir, "no label maps (*.png) found")
+        unknown = [name for name in pred_files if name not in gt_files]
+        if unknown:
+            shown = ", ".join(unknown[:10]) + (", ..." if len(unknown) > 10 else "")
+            raise CSAInputError(
+                gt_dir, f"no ground truth for {len(unknown)} predicted frame(s): {shown}"
+            )
+        gt_files = {name: gt_files[name] for name in pred_files}
     missing = [name for name in gt_files if name not in pred_files]
     if missing:
         shown = ", ".join(missing[:10]) + (", ..." if len(missing) > 10 else "")

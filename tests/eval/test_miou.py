@@ -263,3 +263,25 @@ def test_folder_evaluation_rejects_missing_or_empty_folders(tmp_path, folders):
     _write(tmp_path / "blank", "0", np.zeros_like(GT))
     with pytest.raises(CSAInputError, match="no labelled pixels"):
         evaluate_label_folders(pred_dir, tmp_path / "blank")
+
+
+def test_folder_evaluation_of_the_predicted_frames_only(folders):
+    pred_dir, gt_dir = folders
+    (pred_dir / "99.png").unlink()
+    (pred_dir / "10.png").unlink()  # a render of some of the scene's views
+    with pytest.raises(CSAInputError, match="no prediction"):
+        evaluate_label_folders(pred_dir, gt_dir)
+    result = evaluate_label_folders(pred_dir, gt_dir, predicted_only=True)
+    expected = ConfusionMatrix().update(PRED, GT).summary()
+    assert result["num_frames"] == 1
+    assert result["miou"] == pytest.approx(expected["miou"])
+    # every predicted frame still needs a ground truth, named when it has none
+    _write(pred_dir, "7", PRED)
+    with pytest.raises(CSAInputError, match=r"1 predicted frame\(s\): 7") as info:
+        evaluate_label_folders(pred_dir, gt_dir, predicted_only=True)
+    assert info.value.where == str(gt_dir)
+    for p in pred_dir.glob("*.png"):
+        p.unlink()
+    with pytest.raises(CSAInputError, match="no label maps") as info:
+        evaluate_label_folders(pred_dir, gt_dir, predicted_only=True)
+    assert info.value.where == str(pred_dir)
