@@ -42,6 +42,7 @@ from client.models import (
 )
 
 API = "/api/v1"
+TOTAL_COUNT_HEADER = "X-Total-Count"  # the number of rows of a paged list, all pages together
 T = TypeVar("T")
 FileLike = str | os.PathLike[str] | bytes
 
@@ -75,7 +76,12 @@ class CSAClient:
     ``timeout`` bounds ordinary requests; ``upload_timeout`` uploads and downloads, which
     can be large. Errors raise :class:`client.errors.CSAError` subclasses whose message
     carries the server's explanation (and the field at fault).
+
+    The lists of scenes, frames and model versions are read a page of ``page_size`` rows at a
+    time (the server answers at most 1000 a request) and returned whole.
     """
+
+    page_size = 1000  # rows a request of a paged list; the server's maximum
 
     def __init__(
         self,
@@ -138,6 +144,21 @@ class CSAClient:
             return model.model_validate(data)  # type: ignore[return-value]
         return TypeAdapter(model).validate_python(data)
 
+    def _all_pages(self, path: str, model: type[T], params: dict[str, Any] | None = None) -> list[T]:
+        """Every row of a paged list route, ``page_size`` rows a request (``limit`` and
+        ``offset``), until the total in ``X-Total-Count`` is read or a page comes back short.
+        A server without pages (no ``X-Total-Count``) answered the whole list at once.
+        Rows created or deleted while the pages are read may be missed or read twice."""
+        adapter = TypeAdapter(list[model])  # type: ignore[valid-type]
+        rows: list[T] = []
+        while True:
+            response = self._request("GET", path, params={**(params or {}), "limit": self.page_size, "offset": len(rows)})
+            batch = adapter.validate_python(response.json())
+            rows += batch
+            total = response.headers.get(TOTAL_COUNT_HEADER, "")
+            if not total.isdigit() or len(batch) < self.page_size or len(rows) >= int(total):
+                return rows
+
     # -- service -------------------------------------------------------------------------
 
     def health(self) -> Health:
@@ -146,7 +167,7 @@ class CSAClient:
     # -- scenes and frames ---------------------------------------------------------------
 
     def scenes(self) -> list[Scene]:
-        return self._json("GET", f"{API}/scenes", list[Scene])
+        return self._all_pages(f"{API}/scenes", Scene)
 
     def scene(self, ref: str | int) -> Scene:
         return self._json("GET", f"{API}/scenes/{_ref(ref)}", Scene)
@@ -167,7 +188,7 @@ class CSAClient:
         self._request("DELETE", f"{API}/scenes/{_ref(ref)}")
 
     def frames(self, scene: str | int) -> list[Frame]:
-        return self._json("GET", f"{API}/scenes/{_ref(scene)}/frames", list[Frame])
+        return self._all_pages(f"{API}/scenes/{_ref(scene)}/frames", Frame)
 
     def upload_frame(
         self,
@@ -311,7 +332,7 @@ class CSAClient:
     # -- models, memory bank, metrics ----------------------------------------------------
 
     def models(self, lineage: str | None = None) -> list[ModelVersion]:
-        return self._json("GET", f"{API}/models", list[ModelVersion], params={"lineage": lineage} if lineage else None)
+        return self._all_pages(f"{API}/models", ModelVersion, params={"lineage": lineage} if lineage else None)
 
     def model(self, ref: str | int = "current") -> ModelVersion:
         return self._json("GET", f"{API}/models/{_ref(ref)}", ModelVersion)

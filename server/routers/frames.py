@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, File, Form, Response, UploadFile, status
 from fastapi.responses import FileResponse
-from sqlalchemy import select
+from sqlalchemy import Select, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm.exc import StaleDataError
 
@@ -28,6 +28,7 @@ from server.frame_validation import (
     validate_frame,
 )
 from server.lookups import get_scene
+from server.pagination import MAX_LIMIT, PAGE_RESPONSES, Limit, Offset, page
 from server.schemas.common import ERROR_RESPONSES
 from server.schemas.frames import ArchiveUploadOut, FrameOut, FrameUploadOut, SkippedFrameOut
 
@@ -136,10 +137,22 @@ async def upload_frame(
     return FrameUploadOut(**FrameOut.model_validate(outcome.frame).model_dump(), created=outcome.created, replaced=outcome.replaced)
 
 
-@router.get("/frames", response_model=list[FrameOut])
-def list_frames(scene_ref: str, db: DbDep) -> list[FrameOut]:
+def frames_query(scene_id: int) -> Select:
+    """A scene's frames in order: by order key, then name (unique in a scene, so the order is total)."""
+    return select(Frame).where(Frame.scene_id == scene_id).order_by(Frame.order_key, Frame.name)
+
+
+def all_frames(db, scene_id: int) -> list[FrameOut]:
+    """Every frame of a scene, in order: for the dashboard, which pages them itself."""
+    return [FrameOut.model_validate(f) for f in db.scalars(frames_query(scene_id))]
+
+
+@router.get("/frames", response_model=list[FrameOut], responses=PAGE_RESPONSES)
+def list_frames(scene_ref: str, db: DbDep, response: Response, limit: Limit = MAX_LIMIT, offset: Offset = 0) -> list[FrameOut]:
+    """The scene's frames in order (order key, then name), a page at a time; ``X-Total-Count``
+    is the number of all its frames."""
     scene = get_scene(db, scene_ref)
-    return [FrameOut.model_validate(f) for f in db.scalars(select(Frame).where(Frame.scene_id == scene.id).order_by(Frame.order_key, Frame.name))]
+    return [FrameOut.model_validate(f) for f in page(db, frames_query(scene.id), limit, offset, response)]
 
 
 def _get_frame(db, scene: Scene, name: str) -> Frame:

@@ -8,9 +8,9 @@ import tempfile
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, File, Form, Query, UploadFile, status
+from fastapi import APIRouter, File, Form, Query, Response, UploadFile, status
 from fastapi.responses import FileResponse
-from sqlalchemy import select
+from sqlalchemy import Select, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
@@ -22,6 +22,7 @@ from server.db.models import Evaluation, ModelVersion, Scene
 from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import conflict, invalid, not_available, too_large
 from server.lookups import get_model
+from server.pagination import MAX_LIMIT, PAGE_RESPONSES, Limit, Offset, page
 from server.registry import checkpoint_sha, pending_root, register_checkpoint, set_current
 from server.schemas.common import ERROR_RESPONSES, Name
 from server.schemas.models import ModelOut
@@ -54,12 +55,29 @@ def model_out(db: Session, m: ModelVersion) -> ModelOut:
     )
 
 
-@router.get("", response_model=list[ModelOut])
-def list_models(db: DbDep, lineage: Annotated[Name | None, Query()] = None) -> list[ModelOut]:
+def models_query(lineage: str | None = None) -> Select:
     q = select(ModelVersion).order_by(ModelVersion.id)
     if lineage is not None:
         q = q.where(ModelVersion.lineage == lineage)
-    return [model_out(db, m) for m in db.scalars(q)]
+    return q
+
+
+def all_models(db: Session, lineage: str | None = None) -> list[ModelOut]:
+    """Every model version (of ``lineage``), by id: for the dashboard, which shows them all."""
+    return [model_out(db, m) for m in db.scalars(models_query(lineage))]
+
+
+@router.get("", response_model=list[ModelOut], responses=PAGE_RESPONSES)
+def list_models(
+    db: DbDep,
+    response: Response,
+    lineage: Annotated[Name | None, Query()] = None,
+    limit: Limit = MAX_LIMIT,
+    offset: Offset = 0,
+) -> list[ModelOut]:
+    """Model versions (of ``lineage``) by id, a page at a time; ``X-Total-Count`` is the number
+    of all of them."""
+    return [model_out(db, m) for m in page(db, models_query(lineage), limit, offset, response)]
 
 
 def _checked_card(path: Path, max_pixels: int):

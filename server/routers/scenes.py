@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Response, status
-from sqlalchemy import func, select
+from sqlalchemy import Select, func, select
 from sqlalchemy.exc import IntegrityError
 
 from server.db.models import Frame, Job, NerfCheckpoint, Scene
@@ -11,6 +11,7 @@ from server.deps import DbDep, ServicesDep
 from server.errors import conflict
 from server.jobs.queue import QUEUED, RUNNING
 from server.lookups import get_scene
+from server.pagination import MAX_LIMIT, PAGE_RESPONSES, Limit, Offset, page
 from server.schemas.common import ERROR_RESPONSES, IntrinsicsOut
 from server.schemas.scenes import SceneCreate, SceneOut
 
@@ -47,9 +48,19 @@ def create_scene(body: SceneCreate, db: DbDep) -> SceneOut:
     return scene_out(db, scene)
 
 
-@router.get("", response_model=list[SceneOut])
-def list_scenes(db: DbDep) -> list[SceneOut]:
-    return [scene_out(db, s) for s in db.scalars(select(Scene).order_by(Scene.id))]
+def scenes_query() -> Select:
+    return select(Scene).order_by(Scene.id)
+
+
+def all_scenes(db) -> list[SceneOut]:
+    """Every scene, by id: for the dashboard, which shows them all (the route answers pages)."""
+    return [scene_out(db, s) for s in db.scalars(scenes_query())]
+
+
+@router.get("", response_model=list[SceneOut], responses=PAGE_RESPONSES)
+def list_scenes(db: DbDep, response: Response, limit: Limit = MAX_LIMIT, offset: Offset = 0) -> list[SceneOut]:
+    """Scenes by id, a page at a time; ``X-Total-Count`` is the number of all scenes."""
+    return [scene_out(db, s) for s in page(db, scenes_query(), limit, offset, response)]
 
 
 @router.get("/{scene_ref}", response_model=SceneOut)

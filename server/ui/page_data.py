@@ -110,7 +110,7 @@ class SceneRow:
 def scene_rows(db: Session, coverage: DepthCoverage) -> list[SceneRow]:
     bank = {e.scene_id: e for e in memory_route.memory_bank(db, include_inactive=False).entries}
     rows = []
-    for scene in scenes_route.list_scenes(db):
+    for scene in scenes_route.all_scenes(db):
         shas = list(
             db.scalars(
                 select(Frame.depth_sha256)
@@ -140,7 +140,7 @@ class Lineage:
 
 def lineages(db: Session) -> list[Lineage]:
     """Every lineage as a tree of versions (a version's children were adapted from it)."""
-    models = models_route.list_models(db)
+    models = models_route.all_models(db)
     nodes = {m.id: ModelNode(m) for m in models}
     by_lineage: dict[str, Lineage] = {}
     for m in models:
@@ -270,7 +270,7 @@ def cotta_bytes(db: Session, cache: ModelCache) -> tuple[int | None, str | None,
 
 def memory_summary(db: Session, cache: ModelCache) -> MemorySummary:
     bank = memory_route.memory_bank(db, include_inactive=False)
-    scenes = {s.id: s for s in scenes_route.list_scenes(db)}
+    scenes = {s.id: s for s in scenes_route.all_scenes(db)}
     rows = []
     for entry in bank.entries:
         scene = scenes.get(entry.scene_id)
@@ -295,7 +295,7 @@ def nerf_scenes(db: Session) -> list[tuple[SceneOut, list[str]]]:
     """Scenes with a NeRF in the memory bank and the names of their training frames (the
     poses a NeRF was fitted on: the first part of the frames in order)."""
     out = []
-    for scene in scenes_route.list_scenes(db):
+    for scene in scenes_route.all_scenes(db):
         if not scene.has_nerf or active_nerf(db, scene.id) is None:
             continue
         names = list(

@@ -303,7 +303,7 @@ def scene_page(
         scene = scenes.scene_out(db, get_scene(db, scene_ref))
     except APIError as e:
         return _page(request, "error.html", session, e.status, active="scenes", error=e.message)
-    all_frames = frames.list_frames(str(scene.id), db)
+    all_frames = frames.all_frames(db, scene.id)
     pages = max(1, math.ceil(len(all_frames) / FRAMES_PER_PAGE))
     page = min(page, pages - 1)
     selected = next((f for f in all_frames if f.name == frame), None)
@@ -445,7 +445,7 @@ def work_page(request: Request, session: PageSession, db: DbDep) -> Response:
         "work.html",
         session,
         active="work",
-        scenes=scenes.list_scenes(db),
+        scenes=scenes.all_scenes(db),
         kinds=kinds,
         model=current_model(db),
         adapt_presets=presets,
