@@ -25,7 +25,9 @@ Labels fused (training views; ground truth ``label-nyu40`` scores them):
 (``csa_core.data.synth.kinect``): noisy depth with holes and noisy colour, and with ``--noise``
 labels with systematic (view-consistent) errors besides the per-frame ones; with
 ``--labels``/``--predictions`` the labels stay as given (predictions are made on the degraded
-colour). Scenes without labels (7-Scenes) get colour and depth quality instead: the NeRF's
+colour). ``--variants outliers`` keeps the clean scene and its labels but makes 3% of each
+frame's measured depth pixels read 20-60 m (far outliers, as multipath or sunlight give a
+depth sensor), to see what they cost each fuser. Scenes without labels (7-Scenes) get colour and depth quality instead: the NeRF's
 held-out PSNR and depth L1 (rendered without the view's depth) against the map's depth L1 and
 coverage (share of held-out pixels whose ray meets the map).
 
@@ -235,10 +237,29 @@ def prepare(
         for f in scene.frames:
             f.labels[INPUT] = f.labels[NOISY_FOLDER]
         return "systematic + per-frame errors"
+    if variant == "outliers":
+        add_far_outliers(scene, np.random.default_rng([args.seed, 1]))
     rng = np.random.default_rng(args.seed)
     for f in scene.frames:
         f.labels[INPUT] = corrupt_labels(f.labels[NYU40_FOLDER], rng)
     return "per-frame errors"
+
+
+# The ``outliers`` variant: this share of each frame's measured depth pixels reads far away,
+# uniformly in this range of metres (multipath and sunlight on a time-of-flight or
+# structured-light sensor); colour and labels stay as in ``clean``.
+OUTLIER_SHARE = 0.03
+OUTLIER_RANGE = (20.0, 60.0)
+
+
+def add_far_outliers(scene: Scene, rng: np.random.Generator) -> None:
+    """Replace :data:`OUTLIER_SHARE` of every frame's measured depth by far readings, in place."""
+    for f in scene.frames:
+        depth = f.depth.copy()
+        ys, xs = np.nonzero(depth > 0)
+        pick = rng.random(ys.size) < OUTLIER_SHARE
+        depth[ys[pick], xs[pick]] = rng.uniform(*OUTLIER_RANGE, int(pick.sum())).astype(depth.dtype)
+        f.depth = depth
 
 
 def confusion(labels: dict[str, np.ndarray], frames) -> ConfusionMatrix:
@@ -611,7 +632,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0, help="room seed of --families, noise seed")
     p.add_argument("--frames", type=int, default=250, help="frames per scene (first N)")
     p.add_argument("--size", default="160x120", help="WxH working size")
-    p.add_argument("--variants", default="clean", help="comma-separated: clean, hard")
+    p.add_argument("--variants", default="clean", help="comma-separated: clean, hard, outliers")
     labels = p.add_mutually_exclusive_group()
     labels.add_argument("--noise", action="store_true", help="corrupted ground truth (default)")
     labels.add_argument("--labels", default=None, help="a label folder of the scene")
@@ -648,9 +669,9 @@ def main() -> None:
     args = p.parse_args()
     if args.space_labels and (args.labels or args.predictions):
         raise SystemExit("--space-labels: only with --noise (not with --labels or --predictions)")
-    bad = set(args.variants.split(",")) - {"clean", "hard"}
+    bad = set(args.variants.split(",")) - {"clean", "hard", "outliers"}
     if bad:
-        raise SystemExit(f"--variants: unknown {', '.join(sorted(bad))} (clean, hard)")
+        raise SystemExit(f"--variants: unknown {', '.join(sorted(bad))} (clean, hard, outliers)")
     args.renders = [r for r in args.renders.split(",") if r]
     bad = set(args.renders) - set(RENDERS)
     if bad:
