@@ -31,6 +31,10 @@ _HEADER_KEY = "csa"
 # from a file anyone may have written, and JSON nested about as deep as Python's recursion
 # limit fails to parse with RecursionError, or parses and then fails wherever it is encoded.
 MAX_CARD_DEPTH = 32
+# A card is at most this many bytes of JSON (ours hold a few KB: the lineage grows by one id
+# per adaptation step). Its metrics are stored with a registered version and sent in every
+# listing of the models, so a card stuffed with megabytes would weigh on each of them.
+MAX_CARD_BYTES = 1 << 20
 # How a safetensors header names the dtypes of torch tensors.
 _DTYPE_NAMES = {
     torch.float64: "F64",
@@ -91,10 +95,16 @@ class ModelCard:
         return ModelCard(**{**base, **values})
 
     def to_json(self) -> str:
-        return json.dumps(asdict(self), sort_keys=True, default=_jsonable)
+        text = json.dumps(asdict(self), sort_keys=True, default=_jsonable)
+        if len(text.encode()) > MAX_CARD_BYTES:
+            raise ValueError(f"model card of {len(text.encode())} bytes: more than the {MAX_CARD_BYTES} a card may hold")
+        return text
 
     @classmethod
     def from_json(cls, text: str) -> ModelCard:
+        size = len(text.encode(errors="replace"))
+        if size > MAX_CARD_BYTES:
+            raise ValueError(f"{size} bytes of JSON, more than the {MAX_CARD_BYTES} a card may hold")
         try:
             data = json.loads(text)
         except RecursionError:
@@ -163,8 +173,9 @@ def save_checkpoint(
         raise ValueError(
             f"save_checkpoint: {len(written.class_names)} class names for {written.num_classes} outputs"
         )
+    metadata = {_HEADER_KEY: written.to_json()}  # refuses an oversized card before any file
     with atomic_file(path) as tmp:
-        save_file(tensors, str(tmp), metadata={_HEADER_KEY: written.to_json()})
+        save_file(tensors, str(tmp), metadata=metadata)
     return written
 
 

@@ -114,6 +114,28 @@ def test_foreign_or_mismatched_content_is_rejected(tmp_path, trained_like_model)
         load_checkpoint(broken)
 
 
+def test_cards_over_the_size_cap_are_neither_written_nor_read(tmp_path, trained_like_model):
+    from csa_core.seg.checkpoint import MAX_CARD_BYTES
+
+    stuffed = {"padding": "x" * MAX_CARD_BYTES}
+    path = tmp_path / "big.safetensors"
+    with pytest.raises(ValueError, match=f"more than the {MAX_CARD_BYTES} a card may hold"):
+        save_checkpoint(path, trained_like_model, ModelCard(arch="x", metrics=stuffed))
+    assert list(tmp_path.iterdir()) == []  # nothing half-written
+
+    card = save_checkpoint(tmp_path / "ok.safetensors", trained_like_model)
+    tensors = {k: v.contiguous() for k, v in trained_like_model.state_dict().items()}
+    text = json.dumps({**card.__dict__, "metrics": stuffed})
+    save_file(tensors, str(path), metadata={"csa": text})
+    for read in (read_model_card, load_checkpoint):
+        with pytest.raises(CSAInputError, match=f"{len(text)} bytes of JSON, more than the {MAX_CARD_BYTES}"):
+            read(path)
+    # just under the cap still loads
+    fits = {"padding": "x" * (MAX_CARD_BYTES - len(json.dumps({**card.__dict__, "metrics": {"padding": ""}})))}
+    save_file(tensors, str(path), metadata={"csa": json.dumps({**card.__dict__, "metrics": fits})})
+    assert read_model_card(path).metrics == fits
+
+
 def test_child_card_records_its_parent(tmp_path, trained_like_model):
     parent = save_checkpoint(
         tmp_path / "p.safetensors",

@@ -496,6 +496,19 @@ def test_model_cards_nested_deeper_than_a_card_are_refused(http: httpx.Client, d
     assert after.status_code == 200 and after.json() == before
 
 
+def test_model_cards_over_the_size_cap_are_refused(http: httpx.Client) -> None:
+    """A card's metrics are stored with the version and sent in every listing of the models:
+    a card of more than a megabyte is refused, naming the cap, and nothing is registered."""
+    from safetensors.torch import save
+
+    from csa_core.seg.checkpoint import MAX_CARD_BYTES
+
+    card = json.dumps({**BASE_CARD, "metrics": {"padding": "x" * MAX_CARD_BYTES}})
+    before = http.get("/api/v1/models").json()
+    refused(upload_checkpoint(http, save(network_weights(), metadata={"csa": card})), 422, "checkpoint", "model card is not valid", f"more than the {MAX_CARD_BYTES} a card may hold")
+    assert http.get("/api/v1/models").json() == before
+
+
 # --- a scene deleted while a frame is being stored -----------------------------------------
 
 
