@@ -27,7 +27,8 @@ labels with systematic (view-consistent) errors besides the per-frame ones; with
 ``--labels``/``--predictions`` the labels stay as given (predictions are made on the degraded
 colour). ``--variants outliers`` keeps the clean scene and its labels but makes 3% of each
 frame's measured depth pixels read 20-60 m (far outliers, as multipath or sunlight give a
-depth sensor), to see what they cost each fuser. Scenes without labels (7-Scenes) get colour and depth quality instead: the NeRF's
+depth sensor), to see what they cost each fuser. Scenes without labels (7-Scenes) get colour
+and depth quality instead: the NeRF's
 held-out PSNR and depth L1 (rendered without the view's depth) against the map's depth L1 and
 coverage (share of held-out pixels whose ray meets the map).
 
@@ -200,6 +201,8 @@ def prepare(
     """Make the ``variant`` of ``scene`` in place and put the labels to fuse under ``INPUT``;
     returns what they are (``None``: no labels). ``keep_sensor``: a real capture, whose hard
     variant keeps its measured colour and depth and gets only the label errors."""
+    if variant == "outliers":  # depth only: the labels below are made as for ``clean``
+        add_far_outliers(scene, np.random.default_rng([args.seed, 1]))
     source = "predictions" if args.predictions else f"folder {args.labels}" if args.labels else None
     if source is None and not labelled:
         return None
@@ -237,8 +240,6 @@ def prepare(
         for f in scene.frames:
             f.labels[INPUT] = f.labels[NOISY_FOLDER]
         return "systematic + per-frame errors"
-    if variant == "outliers":
-        add_far_outliers(scene, np.random.default_rng([args.seed, 1]))
     rng = np.random.default_rng(args.seed)
     for f in scene.frames:
         f.labels[INPUT] = corrupt_labels(f.labels[NYU40_FOLDER], rng)
@@ -255,6 +256,8 @@ OUTLIER_RANGE = (20.0, 60.0)
 def add_far_outliers(scene: Scene, rng: np.random.Generator) -> None:
     """Replace :data:`OUTLIER_SHARE` of every frame's measured depth by far readings, in place."""
     for f in scene.frames:
+        if f.depth is None:
+            continue
         depth = f.depth.copy()
         ys, xs = np.nonzero(depth > 0)
         pick = rng.random(ys.size) < OUTLIER_SHARE
