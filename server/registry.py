@@ -94,7 +94,19 @@ def lineage_chain(session: Session, lineage: str) -> list[ModelVersion]:
     return chain
 
 
-def pending_root(session: Session, name: str, lineage: str) -> tuple[str, str] | None:
+def root_conflict(session: Session, name: str, lineage: str, starter: str) -> tuple[str, str] | None:
+    """``(field, problem)`` when a new lineage's root version named ``name`` cannot be made:
+    a version holds the name (field ``name``) or ``lineage`` exists (field ``lineage``;
+    ``starter``, e.g. "a pre-training", names what starts lineages in the message), or a
+    queued or running pre-training will take either when it ends (:func:`_pending_root`)."""
+    if session.scalar(select(ModelVersion.id).where(ModelVersion.name == name)) is not None:
+        return "name", f"a model version named {name!r} exists"
+    if session.scalar(select(ModelVersion.id).where(ModelVersion.lineage == lineage)) is not None:
+        return "lineage", f"lineage {lineage!r} exists; {starter} starts a new lineage"
+    return _pending_root(session, name, lineage)
+
+
+def _pending_root(session: Session, name: str, lineage: str) -> tuple[str, str] | None:
     """``(field, problem)`` when a queued or running pre-training will register a version
     named ``name`` (field ``name``) or the root of ``lineage`` (field ``lineage``) once it
     ends: the registry does not hold them yet, but taking them meanwhile would make a second

@@ -5,15 +5,14 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from server.db.models import Job, ModelVersion
+from server.db.models import Job
 from server.errors import conflict, invalid
 from server.jobs.context import JobContext
 from server.jobs.inputs import check_size, load_scene, torch_device
 from server.lookups import get_scenes, require_ground_truth
-from server.registry import pending_root, register_checkpoint
+from server.registry import register_checkpoint, root_conflict
 from server.schemas.jobs import PretrainParams
 
 
@@ -36,13 +35,9 @@ def prepare(session: Session, params: PretrainParams, job: Job) -> tuple[dict[st
         raise invalid("params.size", "width and height must be at least 8")
     name = params.name or f"pretrain-{job.id}"
     lineage = params.lineage or name
-    if session.scalar(select(ModelVersion.id).where(ModelVersion.name == name)) is not None:
-        raise conflict(f"a model version named {name!r} exists", field="params.name")
-    if session.scalar(select(ModelVersion.id).where(ModelVersion.lineage == lineage)) is not None:
-        raise conflict(f"lineage {lineage!r} exists; a pre-training starts a new lineage", field="params.lineage")
-    pending = pending_root(session, name, lineage)
-    if pending is not None:
-        raise conflict(pending[1], field=f"params.{pending[0]}")
+    taken = root_conflict(session, name, lineage, "a pre-training")
+    if taken is not None:
+        raise conflict(taken[1], field=f"params.{taken[0]}")
     normalized = {
         "scene_ids": [s.id for s in scenes],
         "val_scene_ids": [s.id for s in val],

@@ -23,7 +23,7 @@ from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import conflict, invalid, not_available, too_large
 from server.lookups import get_model
 from server.pagination import MAX_LIMIT, PAGE_RESPONSES, Limit, Offset, page
-from server.registry import checkpoint_sha, pending_root, register_checkpoint, set_current
+from server.registry import checkpoint_sha, register_checkpoint, root_conflict, set_current
 from server.schemas.common import ERROR_RESPONSES, Name
 from server.schemas.models import ModelOut
 
@@ -123,14 +123,10 @@ async def register_model(
     reason = capabilities.missing_reason("seg")
     if reason is not None:
         raise not_available(reason)
-    if db.scalar(select(ModelVersion.id).where(ModelVersion.name == name)) is not None:
-        raise conflict(f"a model version named {name!r} exists", field="name")
     lineage = lineage or name
-    if db.scalar(select(ModelVersion.id).where(ModelVersion.lineage == lineage)) is not None:
-        raise conflict(f"lineage {lineage!r} exists; an uploaded checkpoint starts a new lineage", field="lineage")
-    pending = pending_root(db, name, lineage)
-    if pending is not None:
-        raise conflict(pending[1], field=pending[0])
+    taken = root_conflict(db, name, lineage, "an uploaded checkpoint")
+    if taken is not None:
+        raise conflict(taken[1], field=taken[0])
     limit = services.settings.max_model_upload_bytes
     tmp = Path(tempfile.mkdtemp(prefix="csa-model-", dir=services.settings.resolved_work_dir))
     try:

@@ -30,18 +30,16 @@ from fastapi import (
 )
 from fastapi.responses import FileResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
-from sqlalchemy import or_, select
 from starlette.concurrency import run_in_threadpool
 
 from csa_core.data.scene import split_point
 from server import capabilities
-from server.db.models import ModelVersion
 from server.deps import DbDep, ServicesDep
 from server.errors import APIError, conflict, not_available, not_found, too_large
 from server.jobs import queue
 from server.jobs.kinds import KINDS
 from server.lookups import active_nerf, current_model, get_job, get_scene
-from server.registry import pending_root
+from server.registry import root_conflict
 from server.routers import continual, frames, inference, jobs, memory, models, rendering, scenes
 from server.schemas.jobs import JobOut
 from server.ui import page_data, panels
@@ -541,16 +539,9 @@ def retry_job(
         raise not_available(f"job kind {kind.name!r}: {reason}")
     if kind.name == "pretrain":  # the copy registers the same name and lineage root: still free?
         name, lineage = (job.params or {}).get("name", ""), job.lineage or ""
-        taken = or_(ModelVersion.name == name, ModelVersion.lineage == lineage)
-        if db.scalar(select(ModelVersion.id).where(taken).limit(1)) is not None:
-            raise conflict(
-                f"model version {name!r} or lineage {lineage!r} is registered now; "
-                "start a new pre-training",
-                field="params.name",
-            )
-        pending = pending_root(db, name, lineage)
-        if pending is not None:
-            raise conflict(pending[1], field=f"params.{pending[0]}")
+        taken = root_conflict(db, name, lineage, "a pre-training")
+        if taken is not None:
+            raise conflict(taken[1], field=f"params.{taken[0]}")
     again = queue.enqueue(db, job.kind, dict(job.params or {}), job.lineage)
     queue.append_log(db, again.id, f"retry of job {job.id}")
     queue.append_log(db, job.id, f"retried as job {again.id}")
