@@ -136,6 +136,11 @@ def _label_files(folder: Path) -> dict[str, Path]:
     return dict(sorted(files.items(), key=lambda kv: _frame_sort_key(kv[0])))
 
 
+def _listed(names: list[str], most: int = 10) -> str:
+    """The first ``most`` names, comma-separated, with ``...`` when there are more."""
+    return ", ".join(names[:most]) + (", ..." if len(names) > most else "")
+
+
 def evaluate_label_folders(
     pred_dir: str | Path, gt_dir: str | Path, predicted_only: bool = False
 ) -> dict[str, Any]:
@@ -160,16 +165,14 @@ def evaluate_label_folders(
             raise CSAInputError(pred_dir, "no label maps (*.png) found")
         unknown = [name for name in pred_files if name not in gt_files]
         if unknown:
-            shown = ", ".join(unknown[:10]) + (", ..." if len(unknown) > 10 else "")
             raise CSAInputError(
-                gt_dir, f"no ground truth for {len(unknown)} predicted frame(s): {shown}"
+                gt_dir, f"no ground truth for {len(unknown)} predicted frame(s): {_listed(unknown)}"
             )
         gt_files = {name: gt_files[name] for name in pred_files}
     missing = [name for name in gt_files if name not in pred_files]
     if missing:
-        shown = ", ".join(missing[:10]) + (", ..." if len(missing) > 10 else "")
         raise CSAInputError(
-            pred_dir, f"no prediction for {len(missing)} ground-truth frame(s): {shown}"
+            pred_dir, f"no prediction for {len(missing)} ground-truth frame(s): {_listed(missing)}"
         )
     matrix = ConfusionMatrix()
     for name, gt_path in gt_files.items():
