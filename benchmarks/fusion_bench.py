@@ -27,7 +27,9 @@ labels with systematic (view-consistent) errors besides the per-frame ones; with
 ``--labels``/``--predictions`` the labels stay as given (predictions are made on the degraded
 colour). ``--variants outliers`` keeps the clean scene and its labels but makes 3% of each
 frame's measured depth pixels read 20-60 m (far outliers, as multipath or sunlight give a
-depth sensor), to see what they cost each fuser. Scenes without labels (7-Scenes) get colour
+depth sensor), to see what they cost each fuser. ``--variants flying`` keeps the clean scene and
+its labels but gives half of the pixels on either side of every depth jump a depth between the
+two surfaces (the flying pixels of a time-of-flight sensor, ``mix_depth_edges``). Scenes without labels (7-Scenes) get colour
 and depth quality instead: the NeRF's
 held-out PSNR and depth L1 (rendered without the view's depth) against the map's depth L1 and
 coverage (share of held-out pixels whose ray meets the map).
@@ -97,7 +99,13 @@ from csa_core.data.label_noise import corrupt_labels
 from csa_core.data.nyu40 import CLASS_NAMES
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.data.space_labels import add_space_labels, label_shares
-from csa_core.data.synth import NOISY_FOLDER, degrade_scene, family_names, parse_size
+from csa_core.data.synth import (
+    NOISY_FOLDER,
+    degrade_scene,
+    family_names,
+    mix_depth_edges,
+    parse_size,
+)
 from csa_core.errors import CSAInputError
 from csa_core.eval import ConfusionMatrix
 from csa_core.nerf import (
@@ -203,6 +211,11 @@ def prepare(
     variant keeps its measured colour and depth and gets only the label errors."""
     if variant == "outliers":  # depth only: the labels below are made as for ``clean``
         add_far_outliers(scene, np.random.default_rng([args.seed, 1]))
+    if variant == "flying":  # depth only, as ``outliers``
+        rng = np.random.default_rng([args.seed, 2])
+        for f in scene.frames:
+            if f.depth is not None:
+                f.depth = mix_depth_edges(f.depth, rng, FLYING_SHARE)
     source = "predictions" if args.predictions else f"folder {args.labels}" if args.labels else None
     if source is None and not labelled:
         return None
@@ -251,6 +264,11 @@ def prepare(
 # structured-light sensor); colour and labels stay as in ``clean``.
 OUTLIER_SHARE = 0.03
 OUTLIER_RANGE = (20.0, 60.0)
+
+
+# The ``flying`` variant: this share of the pixels beside every depth jump reads a depth
+# between the two surfaces.
+FLYING_SHARE = 0.5
 
 
 def add_far_outliers(scene: Scene, rng: np.random.Generator) -> None:
@@ -635,7 +653,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0, help="room seed of --families, noise seed")
     p.add_argument("--frames", type=int, default=250, help="frames per scene (first N)")
     p.add_argument("--size", default="160x120", help="WxH working size")
-    p.add_argument("--variants", default="clean", help="comma-separated: clean, hard, outliers")
+    p.add_argument("--variants", default="clean", help="comma-separated: clean, hard, outliers, flying")
     labels = p.add_mutually_exclusive_group()
     labels.add_argument("--noise", action="store_true", help="corrupted ground truth (default)")
     labels.add_argument("--labels", default=None, help="a label folder of the scene")
@@ -672,9 +690,9 @@ def main() -> None:
     args = p.parse_args()
     if args.space_labels and (args.labels or args.predictions):
         raise SystemExit("--space-labels: only with --noise (not with --labels or --predictions)")
-    bad = set(args.variants.split(",")) - {"clean", "hard", "outliers"}
+    bad = set(args.variants.split(",")) - {"clean", "hard", "outliers", "flying"}
     if bad:
-        raise SystemExit(f"--variants: unknown {', '.join(sorted(bad))} (clean, hard, outliers)")
+        raise SystemExit(f"--variants: unknown {', '.join(sorted(bad))} (clean, hard, outliers, flying)")
     args.renders = [r for r in args.renders.split(",") if r]
     bad = set(args.renders) - set(RENDERS)
     if bad:

@@ -16,6 +16,7 @@ from csa_core.data.synth import (
     degrade_scene,
     degrade_scene_folder,
     generate_scene,
+    mix_depth_edges,
 )
 from csa_core.errors import CSAInputError
 from tests.tiny_scenes import look_at_pose
@@ -95,6 +96,30 @@ def test_holes_at_depth_discontinuities_and_in_the_projector_shadow() -> None:
     near[36:84, 54:104] = True
     near[44:76, 64:96] = False
     assert not holes[~near].any()
+
+
+def test_flying_pixels_lie_between_the_two_surfaces_of_a_jump() -> None:
+    depth = np.full((60, 80), 3.0, np.float32)
+    depth[20:40, 30:50] = 1.5  # a box in front of a wall
+    depth[0, 0] = 0.0  # not measured: stays so
+    share = 0.5
+    out = mix_depth_edges(depth, np.random.default_rng(0), share)
+    changed = out != depth
+    # Only pixels on either side of the box's outline move, about ``share`` of them, and each
+    # to between 10% and 90% of the way from the box to the wall.
+    outline = np.zeros_like(changed)
+    outline[19:41, 29:51] = True
+    outline[21:39, 31:49] = False
+    assert not changed[~outline].any()
+    edge_pixels = outline.sum() - 4  # the four corners touch the box only diagonally
+    assert 0.35 < changed.sum() / edge_pixels < 0.65
+    assert np.all((out[changed] >= 1.5 + 0.1 * 1.5 - 1e-6) & (out[changed] <= 1.5 + 0.9 * 1.5 + 1e-6))
+    assert out[0, 0] == 0.0 and out.dtype == np.float32
+    # Deterministic for a seed; share 0 changes nothing; a share outside [0, 1] is refused.
+    assert np.array_equal(out, mix_depth_edges(depth, np.random.default_rng(0), share))
+    assert np.array_equal(mix_depth_edges(depth, np.random.default_rng(1), 0.0), depth)
+    with pytest.raises(ValueError, match="share"):
+        mix_depth_edges(depth, np.random.default_rng(0), 1.5)
 
 
 def test_holes_on_dark_surfaces_come_in_patches_of_a_share() -> None:

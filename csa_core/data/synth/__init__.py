@@ -27,6 +27,7 @@ from csa_core.data.synth.kinect import (
     axial_sigma,
     degrade_scene,
     degrade_scene_folder,
+    mix_depth_edges,
 )
 
 __all__ = [
@@ -43,6 +44,7 @@ __all__ = [
     "generate_scene",
     "get_family",
     "intrinsics_for",
+    "mix_depth_edges",
     "parse_size",
     "scene_seed",
     "synthesize",

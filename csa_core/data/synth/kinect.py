@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from csa_core.data.camera import Intrinsics
+from csa_core.data.depth_edges import discontinuity_band
 from csa_core.data.label_noise import LabelNoiseConfig, corrupt_labels
 from csa_core.data.scene import NYU40_FOLDER, Frame, Scene, require_depth
 from csa_core.data.synth.noise import hash01, value_noise3
@@ -172,25 +173,28 @@ def _projector_shadow(
     return valid & (right < seen_at)
 
 
-def _discontinuity_band(
-    depth: np.ndarray, valid: np.ndarray, rel_jump: float, width_px: float
+def mix_depth_edges(
+    depth: np.ndarray, rng: np.random.Generator, share: float = 0.5, rel_jump: float = 0.05
 ) -> np.ndarray:
-    """Pixels on either side of a depth jump larger than ``rel_jump`` times the nearer depth,
-    widened to about ``width_px`` pixels per side."""
-    jump = np.zeros_like(valid)
-    for axis in (0, 1):
-        a = np.swapaxes(depth, 0, axis)
-        m = np.swapaxes(valid, 0, axis)
-        both = m[1:] & m[:-1]
-        big = both & (np.abs(a[1:] - a[:-1]) > rel_jump * np.minimum(a[1:], a[:-1]))
-        j = np.swapaxes(jump, 0, axis)  # a view: writes land in ``jump``
-        j[1:] |= big
-        j[:-1] |= big
-    radius = max(0, int(round(width_px)) - 1)
-    if radius:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-        jump = cv2.dilate(jump.astype(np.uint8), kernel) > 0
-    return jump & valid
+    """Flying pixels, as a time-of-flight sensor gives them: a pixel beside a depth jump collects
+    light from both surfaces and reads a depth between them. ``share`` of the pixels on either
+    side of every jump larger than ``rel_jump`` times the nearer depth read a depth drawn
+    uniformly between 10% and 90% of the way from the nearest to the farthest measured depth of
+    their 3x3 neighbourhood; other pixels keep theirs. Returns a new float32 array (0 stays "not
+    measured")."""
+    if not 0 <= share <= 1:
+        raise ValueError(f"mix_depth_edges: share must be in [0, 1], got {share}")
+    d = np.asarray(depth, dtype=np.float32)
+    valid = np.isfinite(d) & (d > 0)
+    edge = discontinuity_band(d, valid, rel_jump, 1.0)
+    kernel = np.ones((3, 3), np.uint8)
+    near = cv2.erode(np.where(valid, d, np.inf).astype(np.float32), kernel)
+    far = cv2.dilate(np.where(valid, d, 0.0).astype(np.float32), kernel)
+    pick = edge & (rng.random(d.shape) < share)
+    alpha = rng.uniform(0.1, 0.9, d.shape).astype(np.float32)
+    out = np.where(valid, d, 0.0).astype(np.float32)
+    out[pick] = (near + alpha * (far - near))[pick]
+    return out
 
 
 def _scene_classes(scene: Scene, folder: str) -> np.ndarray:
@@ -262,7 +266,7 @@ def degrade_frame(
     # Holes decided on the clean geometry.
     holes = ~valid | (depth < cfg.min_range) | (depth > cfg.max_range)
     holes |= _projector_shadow(depth, valid, intrinsics.fx, cfg.baseline)
-    holes |= _discontinuity_band(depth, valid, cfg.edge_jump, cfg.edge_band_px * scale)
+    holes |= discontinuity_band(depth, valid, cfg.edge_jump, cfg.edge_band_px * scale)
     color = frame.color.astype(np.float64)
     luma = 0.299 * color[..., 0] + 0.587 * color[..., 1] + 0.114 * color[..., 2]
     if cfg.dark_share > 0:
