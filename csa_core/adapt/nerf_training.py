@@ -43,7 +43,6 @@ class NerfLabelTrainer:
             scene.intrinsics,
             nerf.device,
             frame_rows=_appearance_index(nerf, self.frames),
-            depth_edge_jump=nerf.config.sampler.depth_edge_jump,
         )
         # The fit's final rate, kept constant (below its start where the preset decays it; the
         # same fixed rate in ``cpu`` and ``paper``): the field is already fitted, only the

@@ -2,9 +2,8 @@
 
 A pixel beside a jump in depth is missing on a structured-light sensor (the Kinect-like
 capture of :mod:`csa_core.data.synth.kinect` makes holes there) and reads a depth between the
-two surfaces on a time-of-flight one (flying pixels, ``mix_depth_edges`` there).
-:func:`trim_depth_edges` marks such pixels "not measured" before a NeRF uses a depth map
-(``SamplerConfig.depth_edge_jump``; benchmarks/RESULTS.md "Flying pixels at depth edges").
+two surfaces on a time-of-flight one (flying pixels, ``mix_depth_edges`` there; the fusion
+benchmark's ``flying`` variant, benchmarks/RESULTS.md "Flying pixels at depth edges").
 """
 
 from __future__ import annotations
@@ -32,16 +31,3 @@ def discontinuity_band(
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
         jump = cv2.dilate(jump.astype(np.uint8), kernel) > 0
     return jump & valid
-
-
-def trim_depth_edges(depth: np.ndarray, rel_jump: float) -> np.ndarray:
-    """``depth`` (H, W, metres, 0 = not measured) with both pixels of every jump larger than
-    ``rel_jump`` times the nearer depth set to 0; ``rel_jump <= 0`` returns it unchanged (the
-    same array)."""
-    if rel_jump <= 0:
-        return depth
-    d = np.asarray(depth, dtype=np.float32)
-    valid = d > 0
-    out = d.copy()
-    out[discontinuity_band(d, valid, rel_jump, 1.0)] = 0.0
-    return out

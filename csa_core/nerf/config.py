@@ -137,18 +137,8 @@ class SamplerConfig:
     render_march_steps: int | None = None
     render_early_stop: float = 1e-3
     render_min_weight: float = 1e-4
-    # Ours, 0 = off (the paper): both pixels of every depth jump larger than this share of the
-    # nearer depth count as not measured, in the fit (no depth or free-space loss, samples as
-    # in a hole) and when a view with depth renders (the hole estimate): a sensor's reading
-    # there mixes two surfaces (``csa_core.data.depth_edges``). The checkpoint's value applies
-    # to every render of it.
-    depth_edge_jump: float = 0.0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.depth_edge_jump) and self.depth_edge_jump >= 0):
-            raise ValueError(
-                f"sampler.depth_edge_jump must be a finite number >= 0, got {self.depth_edge_jump}"
-            )
         if self.render_march_steps is not None and self.render_march_steps < 1:
             raise ValueError(
                 f"sampler.render_march_steps must be at least 1 (or none), got {self.render_march_steps}"

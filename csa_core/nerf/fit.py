@@ -139,9 +139,7 @@ def fit_semantic_nerf(
     ):  # MLP initialisation from the config's seed, caller's RNG untouched
         torch.default_generator.manual_seed(cfg.seed)  # the CPU's: the model is built there
         nerf = SemanticNerf(cfg, box, info, generator=gen).to(dev)
-    rays = RayBank(
-        frames, scene.intrinsics, dev, label_folder, depth_edge_jump=cfg.sampler.depth_edge_jump
-    )
+    rays = RayBank(frames, scene.intrinsics, dev, label_folder)
     trainer = NerfTrainer(
         nerf,
         rays,

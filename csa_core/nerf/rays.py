@@ -14,7 +14,6 @@ import torch
 from torch import Tensor
 
 from csa_core.data.camera import Intrinsics
-from csa_core.data.depth_edges import trim_depth_edges
 from csa_core.data.scene import Frame
 from csa_core.nerf.losses import near_view_weight
 
@@ -50,9 +49,7 @@ class RayBank:
     """All pixels of posed frames as flat tensors: colour, depth (0 = not measured), optional
     labels (0 = ignored) and each pixel's frame. Pixel ``i`` is pixel ``i % (H * W)`` of frame
     ``i // (H * W)``. ``frame_rows`` maps each frame to its row of per-frame parameters (the
-    model's colour corrections); by default frame ``k`` is row ``k``. ``depth_edge_jump``
-    (``SamplerConfig.depth_edge_jump``): depth at jumps larger than this share counts as not
-    measured; 0 keeps every measurement."""
+    model's colour corrections); by default frame ``k`` is row ``k``."""
 
     def __init__(
         self,
@@ -61,7 +58,6 @@ class RayBank:
         device: torch.device | str = "cpu",
         label_folder: str | None = None,
         frame_rows: Tensor | None = None,
-        depth_edge_jump: float = 0.0,
     ):
         self.frames = list(frames)
         self.device = torch.device(device)
@@ -78,9 +74,7 @@ class RayBank:
             np.stack([f.color for f in self.frames]).reshape(-1, 3), device=device
         )
         self.depth = torch.as_tensor(
-            np.stack([trim_depth_edges(frame_depth(f), depth_edge_jump) for f in self.frames])
-            .reshape(-1),
-            device=device,
+            np.stack([frame_depth(f) for f in self.frames]).reshape(-1), device=device
         )
         self.has_depth = bool((self.depth > 0).any())
         self._median_depth: float | None = None

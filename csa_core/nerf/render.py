@@ -25,7 +25,6 @@ import torch
 from csa_core.atomic_io import atomic_dir
 from csa_core.data import image_files as imf
 from csa_core.data.camera import Intrinsics
-from csa_core.data.depth_edges import trim_depth_edges
 from csa_core.data.label_images import save_preview
 from csa_core.data.nyu40 import UNKNOWN
 from csa_core.data.scene import NYU40_FOLDER, Scene
@@ -264,8 +263,6 @@ def render_frames(
     depths = list(depths) if depths is not None else [None] * len(poses)
     if len(depths) != len(poses):
         raise ValueError(f"render_frames: {len(poses)} poses but {len(depths)} depth maps")
-    jump = nerf.config.sampler.depth_edge_jump  # as the fit saw depth: jumps not measured
-    depths = [None if d is None else trim_depth_edges(np.asarray(d), jump) for d in depths]
     has = [d is not None and bool((np.asarray(d) > 0).any()) for d in depths]
     per_pass = max(1, rays_per_pass // hw)
     views: dict[int, RenderedView] = {}

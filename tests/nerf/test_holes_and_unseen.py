@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from csa_core.data.camera import backproject
-from csa_core.data.depth_edges import trim_depth_edges
 from csa_core.data.nyu40 import UNKNOWN
 from csa_core.nerf.normalization import SceneBox
 from csa_core.nerf.rays import RayBank, image_rays
@@ -444,44 +443,3 @@ def test_views_without_depth_render_around_the_estimate_when_asked(tiny_nerf, ti
         assert new.color.shape == old.color.shape and new.color.dtype == np.uint8
     assert any(isinstance(m, DepthGuidedSampler) and m.estimate is not None for m in made)
     assert agree / total > 0.9, agree / total
-
-
-def test_trim_depth_edges_marks_both_pixels_of_every_jump_not_measured():
-    depth = np.full((12, 16), 3.0, np.float32)
-    depth[4:8, 5:10] = 1.5  # a box in front of a wall
-    depth[0, 0] = 0.0  # a hole is no jump: its neighbours keep their depth
-    out = trim_depth_edges(depth, 0.05)
-    gone = (out == 0) & (depth > 0)
-    expect = np.zeros_like(gone)
-    expect[[3, 4, 7, 8], 5:10] = True  # the box's top and bottom rows, the wall's beside them
-    expect[4:8][:, [4, 5, 9, 10]] = True  # its left and right columns, the wall's beside them
-    assert np.array_equal(gone, expect)
-    assert out[0, 1] == 3.0 and out[1, 0] == 3.0
-    # A threshold above the jump (1.5 m is 100% of the nearer depth) trims nothing; 0 is off.
-    assert np.array_equal(trim_depth_edges(depth, 1.5), depth)
-    assert trim_depth_edges(depth, 0.0) is depth
-
-
-def test_depth_edge_jump_trims_depth_in_the_fit_and_in_every_render(tiny_nerf, tiny_scene):
-    frames = tiny_scene.train_frames[:2]
-    jump = 0.05
-    bank = RayBank(frames, tiny_scene.intrinsics, depth_edge_jump=jump)
-    expect = np.stack([trim_depth_edges(f.depth, jump) for f in frames]).reshape(-1)
-    assert np.array_equal(bank.depth.numpy(), expect)
-    assert (bank.depth == 0).sum() > (RayBank(frames, tiny_scene.intrinsics).depth == 0).sum()
-    # A view with depth renders as if its edges had not been measured: the same labels as
-    # the model without the option given the trimmed depth.
-    trimmed = copy.deepcopy(tiny_nerf)
-    trimmed.config.sampler.depth_edge_jump = jump
-    poses = [(f.name, f.pose) for f in frames]
-    got = render_frames(trimmed, poses, depths=[f.depth for f in frames], color=False)
-    want = render_frames(
-        tiny_nerf, poses, depths=[trim_depth_edges(f.depth, jump) for f in frames], color=False
-    )
-    plain = render_frames(tiny_nerf, poses, depths=[f.depth for f in frames], color=False)
-    for g, w in zip(got, want, strict=True):
-        assert np.array_equal(g.labels, w.labels)
-        assert np.array_equal(g.depth, w.depth)
-    assert any(not np.array_equal(g.depth, p.depth) for g, p in zip(got, plain, strict=True))
-    with pytest.raises(ValueError, match="depth_edge_jump"):
-        type(tiny_nerf.config.sampler)(depth_edge_jump=float("nan"))
