@@ -14,6 +14,11 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 # Latency histogram buckets (seconds), Prometheus' defaults.
 BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 
+# The methods counted by name; any other (HTTP lets a client send any token as a method, and
+# this runs before authentication) is counted as OTHER, so that no client can add series.
+METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+OTHER_METHOD = "OTHER"
+
 
 class RequestStats:
     def __init__(self) -> None:
@@ -81,4 +86,5 @@ class RequestMetricsMiddleware:
         try:
             await self.app(scope, receive, send_wrapper)
         finally:
-            self.stats.observe(scope["method"], self.templates(scope["path"]), status, time.perf_counter() - start)
+            method = scope["method"] if scope["method"] in METHODS else OTHER_METHOD
+            self.stats.observe(method, self.templates(scope["path"]), status, time.perf_counter() - start)

@@ -56,22 +56,34 @@ class BodyLimitMiddleware:
             await self._reject(send, what, limit)
             return
         received = 0
+        over = False  # the body went over the limit before the answer started
 
         async def limited_receive() -> Message:
-            nonlocal received
+            nonlocal received, over
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > limit:
+                    over = over or not tracking_send.started
                     raise BodyTooLarge
             return message
 
+        async def guarded_send(message: Message) -> None:
+            # FastAPI turns an exception raised while it reads the body into its own 400 ("There
+            # was an error parsing the body"): a body without Content-Length (chunked) that goes
+            # over the limit is answered 413 all the same, instead of that answer.
+            if over:
+                return
+            await tracking_send(message)
+
         tracking_send = TrackingSend(send)
         try:
-            await self.app(scope, limited_receive, tracking_send)
-        except BodyTooLarge:
-            if not tracking_send.started:
-                await self._reject(send, what, limit)
+            await self.app(scope, limited_receive, guarded_send)
+        except Exception as exc:
+            if not over and not isinstance(exc, BodyTooLarge):
+                raise  # (a body over the limit after the answer started: nothing more to send)
+        if over:
+            await self._reject(send, what, limit)
 
     @staticmethod
     async def _reject(send: Send, what: str, limit: int) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import tempfile
 from pathlib import Path
@@ -12,6 +13,7 @@ from fastapi.responses import FileResponse
 from sqlalchemy import Select, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm.exc import StaleDataError
+from starlette.concurrency import run_in_threadpool
 
 from csa_core.data.image_files import COLOR_EXTS
 from csa_core.data.scene_io import frame_names
@@ -130,11 +132,18 @@ async def upload_frame(
     )
     if name is not None:
         check_frame_name(name)
-    valid = validate_frame(parts, scene_camera(scene), services.settings.max_image_pixels)
-    outcome = _store_with_retry(db, services, scene, name, valid, replace)
-    if not outcome.created:
+
+    def validate_and_store() -> FrameUploadOut:
+        valid = validate_frame(parts, scene_camera(scene), services.settings.max_image_pixels)
+        outcome = _store_with_retry(db, services, scene, name, valid, replace)
+        return FrameUploadOut(**FrameOut.model_validate(outcome.frame).model_dump(), created=outcome.created, replaced=outcome.replaced)
+
+    # Decoding the images, hashing and fsyncing them take a while: in a worker thread, so
+    # that the event loop keeps serving every other request meanwhile.
+    out = await run_in_threadpool(validate_and_store)
+    if not out.created:
         response.status_code = status.HTTP_200_OK
-    return FrameUploadOut(**FrameOut.model_validate(outcome.frame).model_dump(), created=outcome.created, replaced=outcome.replaced)
+    return out
 
 
 def frames_query(scene_id: int) -> Select:
@@ -236,7 +245,6 @@ async def upload_archive(
 ) -> ArchiveUploadOut:
     scene = get_scene(db, scene_ref)
     st = services.settings
-    limits = ArchiveLimits(st.max_archive_members, st.max_archive_member_bytes, st.max_archive_unpacked_bytes, st.max_archive_ratio)
     tmp = Path(tempfile.mkdtemp(prefix="csa-archive-", dir=services.settings.resolved_work_dir))
     try:
         packed = tmp / "upload"
@@ -247,6 +255,21 @@ async def upload_archive(
                 if size > st.max_archive_bytes:
                     raise too_large("archive", st.max_archive_bytes)
                 out.write(chunk)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    # Extracting, validating and storing every frame takes seconds to minutes: in a worker
+    # thread (which removes ``tmp``), so that the event loop keeps serving other requests.
+    return await run_in_threadpool(_store_archive, db, services, scene, scene_ref, tmp, replace)
+
+
+def _store_archive(db, services, scene: Scene, scene_ref: str, tmp: Path, replace: bool) -> ArchiveUploadOut:
+    """Extract the archive at ``tmp/upload``, validate its frames and store them all or none;
+    removes ``tmp``."""
+    st = services.settings
+    limits = ArchiveLimits(st.max_archive_members, st.max_archive_member_bytes, st.max_archive_unpacked_bytes, st.max_archive_ratio)
+    try:
+        packed = tmp / "upload"
         try:
             root = _archive_frames(extract_archive(packed, tmp / "x", limits))
         except UnsafeArchive as e:
@@ -296,12 +319,23 @@ async def upload_archive(
                 depth_intrinsics=camera.depth_intrinsics or valid.depth_intrinsics,
                 depth_size=camera.depth_size or valid.depth_size,
             )
-            valid_frames.append((name, valid))
+            # Only the frame's checked facts stay in memory, not its image bytes (up to
+            # ``max_archive_unpacked_bytes`` for the whole archive): they are read again from the
+            # extracted folder, which nothing else writes, when the frame is stored.
+            images = (color_path, root / "depth" / f"{name}.png", labels_path if parts.labels is not None else None)
+            valid_frames.append((name, dataclasses.replace(valid, color=b"", depth=b"", labels=None), images))
+            del parts, valid
         if not valid_frames:
             raise invalid("archive", "no frame with a finite pose")
         added, unchanged, replaced = [], [], []
         try:
-            for name, valid in valid_frames:
+            for name, checked, (color_path, depth_path, labels_path) in valid_frames:
+                valid = dataclasses.replace(
+                    checked,
+                    color=color_path.read_bytes(),
+                    depth=depth_path.read_bytes(),
+                    labels=labels_path.read_bytes() if labels_path is not None else None,
+                )
                 outcome = store_frame(db, services.store, scene, name, valid, replace=replace)
                 (added if outcome.created else replaced if outcome.replaced else unchanged).append(name)
             db.commit()

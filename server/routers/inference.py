@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 from fastapi import APIRouter, File, Form, Request, UploadFile
 from fastapi.responses import Response
+from starlette.concurrency import run_in_threadpool
 
 from csa_core.data import image_files
 from csa_core.data.label_images import colorize
@@ -62,16 +63,20 @@ async def predict(
         raise invalid("image", "cannot decode image (not a PNG or JPEG file)")
     if size[0] * size[1] > services.settings.max_image_pixels or min(size) < 1:
         raise invalid("image", f"image is {size[0]}x{size[1]}, more than the limit of {services.settings.max_image_pixels} pixels")
-    with tempfile.TemporaryDirectory(prefix="csa-predict-") as d:
-        path = Path(d) / f"image{fmt}"
-        path.write_bytes(data)
-        try:
-            rgb = image_files.read_color(path)
-        except CSAInputError as e:
-            raise invalid("image", e.problem) from None
+    model_cache = request.app.state.model_cache
 
-    from starlette.concurrency import run_in_threadpool
+    def label() -> bytes:
+        with tempfile.TemporaryDirectory(prefix="csa-predict-") as d:
+            path = Path(d) / f"image{fmt}"
+            path.write_bytes(data)
+            try:
+                rgb = image_files.read_color(path)
+            except CSAInputError as e:
+                raise invalid("image", e.problem) from None
+        labels = model_cache.predict(sha, rgb)
+        return _png(labels.astype(np.uint8)) if format == "ids" else _png(cv2.cvtColor(colorize(labels), cv2.COLOR_RGB2BGR))
 
-    labels = await run_in_threadpool(request.app.state.model_cache.predict, sha, rgb)
-    body = _png(labels.astype(np.uint8)) if format == "ids" else _png(cv2.cvtColor(colorize(labels), cv2.COLOR_RGB2BGR))
+    # Decoding, the network and encoding the answer take a while: in a worker thread, so that
+    # the event loop keeps serving every other request meanwhile.
+    body = await run_in_threadpool(label)
     return Response(body, media_type="image/png", headers={"X-CSA-Model-Id": str(version_id), "X-CSA-Model": name})

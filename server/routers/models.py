@@ -3,10 +3,11 @@ set current, download)."""
 
 from __future__ import annotations
 
+import math
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, Query, Response, UploadFile, status
 from fastapi.responses import FileResponse
@@ -80,6 +81,22 @@ def list_models(
     return [model_out(db, m) for m in page(db, models_query(lineage), limit, offset, response)]
 
 
+def _non_finite_number(value: Any, where: str) -> str | None:
+    """Where a NaN or an infinity sits in parsed JSON (``metrics.miou``), or None. The card's
+    metrics are stored with the version (the database's JSON holds no such numbers: PostgreSQL
+    refuses them, SQLite keeps text that is not JSON) and sent in every listing of the models."""
+    todo = [(value, where)]
+    while todo:
+        item, at = todo.pop()
+        if isinstance(item, float) and not math.isfinite(item):
+            return at
+        if isinstance(item, dict):
+            todo.extend((v, f"{at}.{k}") for k, v in item.items())
+        elif isinstance(item, list):
+            todo.extend((v, f"{at}[{i}]") for i, v in enumerate(item))
+    return None
+
+
 def _checked_card(path: Path, max_pixels: int):
     """The model card of an uploaded checkpoint, once the whole file has been checked: the card
     (``csa_core.seg.checkpoint``), its input size (inference and jobs run the network at it, so
@@ -98,6 +115,9 @@ def _checked_card(path: Path, max_pixels: int):
                 raise CSAInputError("checkpoint", f"model card input_size: {e.problem}") from None
             if w * h > max_pixels:
                 raise CSAInputError("checkpoint", f"model card input_size: {w}x{h} is more than the limit of {max_pixels} pixels")
+        where = _non_finite_number(card.metrics, "metrics")
+        if where is not None:
+            raise CSAInputError("checkpoint", f"model card {where} is not a finite number (NaN and infinities cannot be stored)")
         load_checkpoint(path, device="cpu")
     except CSAInputError as e:
         raise invalid("checkpoint", e.problem) from None
@@ -138,18 +158,24 @@ async def register_model(
                 if size > limit:
                     raise too_large("checkpoint", limit)
                 out.write(chunk)
-        card = await run_in_threadpool(_checked_card, path, services.settings.max_image_pixels)
-        model = register_checkpoint(
-            db, services.store, path, name=name, lineage=lineage, arch=card.arch, metrics=dict(card.metrics or {}), meta={"task": "upload", "card_created": card.created}, make_current=make_current
-        )
-        try:
-            db.commit()
-        except IntegrityError:  # the same name registered by a concurrent request
-            db.rollback()
-            raise conflict(f"a model version named {name!r} exists", field="name") from None
+
+        def check_and_register() -> ModelOut:
+            card = _checked_card(path, services.settings.max_image_pixels)
+            model = register_checkpoint(
+                db, services.store, path, name=name, lineage=lineage, arch=card.arch, metrics=dict(card.metrics or {}), meta={"task": "upload", "card_created": card.created}, make_current=make_current
+            )
+            try:
+                db.commit()
+            except IntegrityError:  # the same name registered by a concurrent request
+                db.rollback()
+                raise conflict(f"a model version named {name!r} exists", field="name") from None
+            return model_out(db, model)
+
+        # Loading the weights and copying a file of up to a gigabyte into the store (hashed and
+        # fsynced) take seconds: in a worker thread, so that the event loop serves other requests.
+        return await run_in_threadpool(check_and_register)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return model_out(db, model)
 
 
 @router.get("/{model_ref}", response_model=ModelOut, summary="a model version by id, name or 'current'")

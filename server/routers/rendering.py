@@ -59,15 +59,22 @@ async def render(scene_ref: str, body: RenderRequest, request: Request, db: DbDe
     files, nerf_id = dict(nerf.files), nerf.id
     db.close()
     cache: NerfCache = request.app.state.nerf_cache
-    view = await run_in_threadpool(cache.render, nerf_id, files, pose, intr)
-    images: dict[str, str] = {}
-    for channel in dict.fromkeys(body.channels):
-        if channel == "color":
-            images[channel] = _png(cv2.cvtColor(view["color"], cv2.COLOR_RGB2BGR))
-        elif channel == "depth":
-            images[channel] = _png(depth_to_mm(view["depth"]))
-        elif channel == "labels":
-            images[channel] = _png(view["labels"].astype(np.uint8))
-        else:
-            images[channel] = _png(cv2.cvtColor(colorize(view["labels"]), cv2.COLOR_RGB2BGR))
+    channels = list(dict.fromkeys(body.channels))
+
+    def render_and_encode() -> dict[str, str]:
+        view = cache.render(nerf_id, files, pose, intr)
+        images: dict[str, str] = {}
+        for channel in channels:
+            if channel == "color":
+                images[channel] = _png(cv2.cvtColor(view["color"], cv2.COLOR_RGB2BGR))
+            elif channel == "depth":
+                images[channel] = _png(depth_to_mm(view["depth"]))
+            elif channel == "labels":
+                images[channel] = _png(view["labels"].astype(np.uint8))
+            else:
+                images[channel] = _png(cv2.cvtColor(colorize(view["labels"]), cv2.COLOR_RGB2BGR))
+        return images
+
+    # The render and the PNG encoding, in a worker thread: the event loop serves other requests.
+    images = await run_in_threadpool(render_and_encode)
     return RenderOut(scene_id=scene.id, nerf_id=nerf_id, width=intr.width, height=intr.height, images=images)

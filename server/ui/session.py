@@ -181,7 +181,10 @@ def check_csrf(request: Request, session: UISession, token: str | None) -> None:
     """Refuse a state-changing request without this session's token or from another site."""
     if not same_origin(request):
         raise APIError(403, "forbidden", "cross-site request refused (Origin is not this service)")
-    if not token or not hmac.compare_digest(token, session.csrf_token):
+    # Compared as bytes: compare_digest refuses str with non-ASCII characters (a TypeError).
+    if not token or not hmac.compare_digest(
+        token.encode("utf-8", "surrogatepass"), session.csrf_token.encode()
+    ):
         raise APIError(
             403, "forbidden", f"missing or wrong CSRF token (send the {CSRF_HEADER} header)"
         )

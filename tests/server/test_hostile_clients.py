@@ -1,9 +1,10 @@
 """Hostile clients over real HTTP, beyond the absurd numbers of test_hardening.py: archives whose
 entries do not map to one file each, corrupt compressed streams, intrinsic matrices that are not
-pinhole matrices, a second depth camera sneaked into a scene, forged model cards, uploads racing
-a scene's deletion, and job parameters that would make a job read a scene twice or at sizes no
-frame has. Every answer is a 4xx whose ``field`` names the culprit, nothing is stored, and no
-error message shows a path of the server.
+pinhole matrices, a second depth camera sneaked into a scene, forged model cards (non-finite
+metrics too), uploads racing a scene's deletion, job parameters that would make a job read a
+scene twice or at sizes no frame has, uploads that would hold the event loop, invented HTTP
+methods, non-ASCII CSRF tokens and bodies without a length. Every answer is a 4xx whose
+``field`` names the culprit, nothing is stored, and no error message shows a path of the server.
 
 SQLite only, no worker (queued jobs never run): the rules live in the request path.
 """
@@ -871,3 +872,160 @@ def test_the_background_sweeper_deletes_old_orphans_and_stops(tmp_path: Path) ->
     with pytest.raises(ValueError, match="orphan_sweep_interval_seconds"):
         OrphanSweeper(store, sessions, older_than_s=3600, interval_s=-1)
     engine.dispose()
+
+
+# --- slow request work off the event loop ----------------------------------------------------
+
+
+def _checkpoint_bytes() -> bytes:
+    """A checkpoint the service registers: the base card's (untrained) network."""
+    from safetensors.torch import save
+
+    return save(network_weights(), metadata={"csa": json.dumps(BASE_CARD)})
+
+
+def _registered_model(http: httpx.Client) -> str:
+    name = f"loop-{next(_names)}"
+    r = http.post("/api/v1/models", files={"checkpoint": ("m.safetensors", _checkpoint_bytes(), "application/octet-stream")}, data={"name": name, "make_current": "false"})
+    assert r.status_code == 201, r.text[:300]
+    return name
+
+
+@pytest.mark.parametrize("route", ["frame", "archive", "model", "predict"])
+def test_uploads_are_processed_off_the_event_loop(http: httpx.Client, api_server: LiveServer, monkeypatch, route: str) -> None:
+    """An upload's work (decoding and validating images, extracting an archive, loading a
+    checkpoint, hashing and fsyncing files, the network) ran on the server's event loop: while
+    an archive of 60 frames of 640x480 (88 MB) was stored, every other request, ``/health``
+    included, waited 1.2 s, and the limits allow archives of a gigabyte and 20000 members. That
+    work runs in a worker thread: here it is held until ``/health`` has been answered, which
+    never happens on a blocked loop."""
+    import threading
+
+    from csa_core.data import image_files
+    from server import capabilities
+    from server.routers import frames, models
+
+    if route in ("model", "predict") and not capabilities.available("seg"):
+        pytest.skip("csa_core.seg is not available in this build")
+    scene = new_scene(http)
+    entered, release = threading.Event(), threading.Event()
+
+    def held(real):
+        def run(*args, **kwargs):
+            entered.set()
+            release.wait(20)
+            return real(*args, **kwargs)
+
+        return run
+
+    model = _registered_model(http) if route == "predict" else None
+    card_checkpoint = _checkpoint_bytes() if route == "model" else b""
+    if route in ("frame", "archive"):
+        monkeypatch.setattr(frames, "validate_frame", held(frames.validate_frame))
+    elif route == "model":
+        monkeypatch.setattr(models, "register_checkpoint", held(models.register_checkpoint))
+    else:
+        monkeypatch.setattr(image_files, "read_color", held(image_files.read_color))
+
+    def send(c: httpx.Client) -> httpx.Response:
+        if route == "frame":
+            return upload_frame(c, scene, "0")
+        if route == "archive":
+            return upload_archive(c, scene, tar_of(list(SCENE.items())))
+        if route == "model":
+            return upload_checkpoint(c, card_checkpoint)
+        return c.post("/api/v1/predict", files={"image": ("i.png", color(), "image/png")}, data={"model": model})
+
+    answers: list[httpx.Response] = []
+    with httpx.Client(base_url=api_server.url, headers={"X-API-Key": API_KEY}, timeout=60) as other:
+        upload = threading.Thread(target=lambda: answers.append(send(other)))
+        upload.start()
+        try:
+            assert entered.wait(30), "the upload never reached the held step"
+            health = httpx.get(f"{api_server.url}/health", timeout=5)  # ReadTimeout on a blocked loop
+            assert health.status_code == 200
+            assert not release.is_set() and upload.is_alive()
+        finally:
+            release.set()
+            upload.join(60)
+    assert len(answers) == 1 and answers[0].status_code in (200, 201), answers[0].text[:300]
+
+
+# --- invented methods, non-ASCII tokens, bodies without a length -----------------------------
+
+
+def test_invented_http_methods_add_no_metrics_series(http: httpx.Client) -> None:
+    """HTTP lets a client send any token as its method, and the request counters run before
+    authentication: every invented method added 15 series to ``/metrics`` for good, so anyone
+    could grow the server's memory and the metrics without bound. They count as OTHER."""
+    for i in range(25):
+        assert http.request(f"INVENTED{i}", "/health").status_code == 405
+    text = http.get("/metrics").text
+    assert "INVENTED" not in text
+    assert 'csa_http_requests_total{method="OTHER",route="/health",status="405"} 25' in text
+
+
+def test_non_ascii_csrf_tokens_are_403_not_500(api_server: LiveServer) -> None:
+    """hmac.compare_digest raises TypeError for str holding non-ASCII characters: a signed-in
+    dashboard request whose CSRF token (header or form field) had one answered 500."""
+    with httpx.Client(base_url=api_server.url, headers={"Origin": api_server.url}, timeout=30) as c:
+        assert c.post("/ui/login", data={"api_key": API_KEY}).status_code == 303
+        r = c.post("/ui/api/v1/scenes", json={"name": f"csrf-{next(_names)}"}, headers={"X-CSRF-Token": b"\xe9t\xe9"})
+        assert r.status_code == 403 and "CSRF token" in r.json()["error"]["message"], r.text[:300]
+        r = c.post("/ui/logout", data={"csrf_token": "été"})
+        assert r.status_code == 403 and "CSRF token" in r.json()["error"]["message"], r.text[:300]
+
+
+@pytest.mark.parametrize(
+    ("route", "head", "content_type", "what"),
+    [
+        ("/api/v1/scenes", b'{"name": "big", "description": "', "application/json", "request body"),
+        ("/api/v1/jobs", b'{"kind": "evaluate", "params": {"model": "', "application/json", "request body"),
+        ("frames", b'--BB\r\nContent-Disposition: form-data; name="color"; filename="c.png"\r\n\r\n', "multipart/form-data; boundary=BB", "frame upload"),
+        ("archive", b'--BB\r\nContent-Disposition: form-data; name="archive"; filename="a.tar"\r\n\r\n', "multipart/form-data; boundary=BB", "archive"),
+    ],
+    ids=["json-scene", "json-job", "frame", "archive"],
+)
+def test_bodies_without_a_length_over_the_limit_are_413(http: httpx.Client, api_server: LiveServer, route: str, head: bytes, content_type: str, what: str) -> None:
+    """A body sent chunked (no Content-Length) was cut off at the limit, but FastAPI turned the
+    middleware's error into its own 400 "There was an error parsing the body": the client
+    could not tell that its upload was too large. It is a 413 naming the limit, as with a
+    Content-Length over it."""
+    from server.upload_limits import BodyLimitMiddleware
+
+    scene = new_scene(http)
+    path = f"/api/v1/scenes/{scene}/{route}" if not route.startswith("/") else route
+    limit, _ = BodyLimitMiddleware(None, api_server.settings)._limit(path)
+
+    def body() -> Iterator[bytes]:
+        yield head
+        for _ in range(limit // 65536 + 4):
+            yield b"x" * 65536
+
+    r = http.post(path, content=body(), headers={"content-type": content_type})
+    refused(r, 413, what, f"{what} exceeds the limit of {limit} bytes")
+    assert frame_count(http, scene) == 0
+
+
+# --- non-finite numbers in a model card ------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("metrics", "where"),
+    [
+        ('{"miou": NaN}', "metrics.miou"),
+        ('{"best": Infinity}', "metrics.best"),
+        ('{"per_scene": {"a": [0.5, -1e999]}}', "metrics.per_scene.a[1]"),
+    ],
+    ids=["nan", "infinity", "nested-overflow"],
+)
+def test_model_cards_with_non_finite_metrics_are_refused(http: httpx.Client, metrics: str, where: str) -> None:
+    """Python's json reads NaN, Infinity and 1e999: a card's metrics holding one were stored
+    with the version, as text that is not JSON on SQLite, and on PostgreSQL the database
+    refused the row (a 422 that named no field). They are refused, naming where they sit."""
+    from safetensors.torch import save
+
+    card = json.dumps(BASE_CARD)[:-1] + f', "metrics": {metrics}}}'
+    before = http.get("/api/v1/models").json()
+    refused(upload_checkpoint(http, save(network_weights(), metadata={"csa": card})), 422, "checkpoint", f"model card {where} is not a finite number")
+    assert http.get("/api/v1/models").json() == before
