@@ -145,19 +145,28 @@ class CSAClient:
         return TypeAdapter(model).validate_python(data)
 
     def _all_pages(self, path: str, model: type[T], params: dict[str, Any] | None = None) -> list[T]:
-        """Every row of a paged list route, ``page_size`` rows a request (``limit`` and
-        ``offset``), until the total in ``X-Total-Count`` is read or a page comes back short.
-        A server without pages (no ``X-Total-Count``) answered the whole list at once.
-        Rows created or deleted while the pages are read may be missed or read twice."""
+        """Every row of a paged list route, ``page_size`` rows a request. Each full page's
+        ``Link: <...>; rel="next"`` names the cursor (``after``) the next request starts from,
+        so rows added or deleted meanwhile neither shift nor repeat the rows read (only the
+        cursor is taken from the link: the request goes to this client's own base URL). A
+        server without cursors is read by ``offset`` until the total in ``X-Total-Count`` is
+        read or a page comes back short (rows created or deleted meanwhile may then be missed
+        or read twice); one without pages (no ``X-Total-Count``) answered the whole list."""
         adapter = TypeAdapter(list[model])  # type: ignore[valid-type]
         rows: list[T] = []
+        after: str | None = None
         while True:
-            response = self._request("GET", path, params={**(params or {}), "limit": self.page_size, "offset": len(rows)})
+            where = {"after": after} if after is not None else {"offset": len(rows)}
+            response = self._request("GET", path, params={**(params or {}), "limit": self.page_size, **where})
             batch = adapter.validate_python(response.json())
             rows += batch
+            after = httpx.URL(response.links.get("next", {}).get("url", "")).params.get("after")
+            if after is not None and batch:
+                continue
             total = response.headers.get(TOTAL_COUNT_HEADER, "")
             if not total.isdigit() or len(batch) < self.page_size or len(rows) >= int(total):
                 return rows
+            after = None
 
     # -- service -------------------------------------------------------------------------
 

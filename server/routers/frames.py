@@ -30,7 +30,7 @@ from server.frame_validation import (
     validate_frame,
 )
 from server.lookups import get_scene
-from server.pagination import MAX_LIMIT, PAGE_RESPONSES, Limit, Offset, page
+from server.pagination import PAGE_RESPONSES, PageDep, page
 from server.schemas.common import ERROR_RESPONSES
 from server.schemas.frames import ArchiveUploadOut, FrameOut, FrameUploadOut, SkippedFrameOut
 
@@ -157,11 +157,11 @@ def all_frames(db, scene_id: int) -> list[FrameOut]:
 
 
 @router.get("/frames", response_model=list[FrameOut], responses=PAGE_RESPONSES)
-def list_frames(scene_ref: str, db: DbDep, response: Response, limit: Limit = MAX_LIMIT, offset: Offset = 0) -> list[FrameOut]:
+def list_frames(scene_ref: str, db: DbDep, response: Response, pages: PageDep) -> list[FrameOut]:
     """The scene's frames in order (order key, then name), a page at a time; ``X-Total-Count``
     is the number of all its frames."""
     scene = get_scene(db, scene_ref)
-    return [FrameOut.model_validate(f) for f in page(db, frames_query(scene.id), limit, offset, response)]
+    return [FrameOut.model_validate(f) for f in page(db, frames_query(scene.id), pages, response, (Frame.order_key, Frame.name))]
 
 
 def _get_frame(db, scene: Scene, name: str) -> Frame:

@@ -23,7 +23,7 @@ from server.db.models import Evaluation, ModelVersion, Scene
 from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import conflict, invalid, not_available, too_large
 from server.lookups import get_model
-from server.pagination import MAX_LIMIT, PAGE_RESPONSES, Limit, Offset, page
+from server.pagination import PAGE_RESPONSES, PageDep, page
 from server.registry import checkpoint_sha, register_checkpoint, root_conflict, set_current
 from server.schemas.common import ERROR_RESPONSES, Name
 from server.schemas.models import ModelOut
@@ -72,13 +72,12 @@ def all_models(db: Session, lineage: str | None = None) -> list[ModelOut]:
 def list_models(
     db: DbDep,
     response: Response,
+    pages: PageDep,
     lineage: Annotated[Name | None, Query()] = None,
-    limit: Limit = MAX_LIMIT,
-    offset: Offset = 0,
 ) -> list[ModelOut]:
     """Model versions (of ``lineage``) by id, a page at a time; ``X-Total-Count`` is the number
     of all of them."""
-    return [model_out(db, m) for m in page(db, models_query(lineage), limit, offset, response)]
+    return [model_out(db, m) for m in page(db, models_query(lineage), pages, response, (ModelVersion.id,))]
 
 
 def _non_finite_number(value: Any, where: str) -> str | None:

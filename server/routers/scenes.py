@@ -11,7 +11,7 @@ from server.deps import DbDep, ServicesDep
 from server.errors import conflict
 from server.jobs.queue import QUEUED, RUNNING
 from server.lookups import get_scene
-from server.pagination import MAX_LIMIT, PAGE_RESPONSES, Limit, Offset, page
+from server.pagination import PAGE_RESPONSES, PageDep, page
 from server.schemas.common import ERROR_RESPONSES, IntrinsicsOut
 from server.schemas.scenes import SceneCreate, SceneOut
 
@@ -58,9 +58,9 @@ def all_scenes(db) -> list[SceneOut]:
 
 
 @router.get("", response_model=list[SceneOut], responses=PAGE_RESPONSES)
-def list_scenes(db: DbDep, response: Response, limit: Limit = MAX_LIMIT, offset: Offset = 0) -> list[SceneOut]:
+def list_scenes(db: DbDep, response: Response, pages: PageDep) -> list[SceneOut]:
     """Scenes by id, a page at a time; ``X-Total-Count`` is the number of all scenes."""
-    return [scene_out(db, s) for s in page(db, scenes_query(), limit, offset, response)]
+    return [scene_out(db, s) for s in page(db, scenes_query(), pages, response, (Scene.id,))]
 
 
 @router.get("/{scene_ref}", response_model=SceneOut)

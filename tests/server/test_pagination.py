@@ -1,8 +1,10 @@
 """Pages of the list routes: ``GET /api/v1/scenes``, ``/scenes/{scene}/frames`` and ``/models``
-answer ``limit`` rows from ``offset`` in a stable order, with the size of the whole list in
-``X-Total-Count``; out-of-range paging is a 422 naming the parameter, never a database error
-(an offset past a 64-bit integer included); and ``CSAClient`` (with ``csa-client``) reads every
-page, so its users still get whole lists.
+answer ``limit`` rows from ``offset``, or after the cursor of a full page's ``Link`` header, in
+a stable order, with the size of the whole list in ``X-Total-Count``; the cursors neither skip
+nor repeat rows when others are added or deleted meanwhile; out-of-range paging and a cursor
+the server did not give out are a 422 naming the parameter, never a database error (an offset
+past a 64-bit integer included); and ``CSAClient`` (with ``csa-client``) follows the cursors
+through every page, so its users still get whole lists.
 
 One server without a worker per backend; five scenes, five frames with names chosen so that
 the frame order is neither upload order nor name order, and five model versions in two
@@ -25,7 +27,7 @@ from client import CSAClient, cli
 from client.cli import main as cli_main
 from server.db.models import MAX_ID, ModelVersion
 from server.db.session import session_scope
-from server.pagination import MAX_LIMIT, TOTAL_COUNT_HEADER
+from server.pagination import MAX_LIMIT, TOTAL_COUNT_HEADER, encode_cursor
 from server.registry import CHECKPOINT_FILE
 from tests.server.conftest import (
     API_KEY,
@@ -191,7 +193,7 @@ def test_the_openapi_document_names_the_parameters_and_the_header(paged: Paged) 
 
 
 class Recording(httpx.HTTPTransport):
-    """A real transport that remembers the (path, offset) of every GET."""
+    """A real transport that remembers the (path, "offset N" or "after") of every GET."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -199,7 +201,9 @@ class Recording(httpx.HTTPTransport):
 
     def handle_request(self, request: httpx.Request) -> httpx.Response:
         if request.method == "GET":
-            self.gets.append((request.url.path, request.url.params.get("offset")))
+            params = request.url.params
+            where = "after" if "after" in params else f"offset {params.get('offset')}"
+            self.gets.append((request.url.path, where))
         return super().handle_request(request)
 
 
@@ -218,19 +222,40 @@ def test_the_client_pages_through_every_list(paged: Paged, recorded: tuple[CSACl
     assert [f.name for f in c.frames(SCENES[0])] == FRAME_ORDER
     assert [m.name for m in c.models()] == [m for m, _ in MODELS]
     assert c.frames(SCENES[1]) == []
+    # The first page from offset 0, each next one after the cursor of the full page before.
+    pages = ("offset 0", "after", "after")
     assert transport.gets == [
-        *[("/api/v1/scenes", o) for o in ("0", "2", "4")] * 2,
-        *[(ROUTES["frames"], o) for o in ("0", "2", "4")],
-        *[("/api/v1/models", o) for o in ("0", "2", "4")],
-        (f"/api/v1/scenes/{SCENES[1]}/frames", "0"),
+        *[("/api/v1/scenes", o) for o in pages] * 2,
+        *[(ROUTES["frames"], o) for o in pages],
+        *[("/api/v1/models", o) for o in pages],
+        (f"/api/v1/scenes/{SCENES[1]}/frames", "offset 0"),
     ]
 
 
-def test_the_client_stops_at_the_total_and_keeps_the_filter(paged: Paged, recorded: tuple[CSAClient, Recording]) -> None:
+def test_the_client_follows_the_cursors_and_keeps_the_filter(paged: Paged, recorded: tuple[CSAClient, Recording]) -> None:
     c, transport = recorded
-    assert [m.name for m in c.models(lineage="beta")] == ["beta-0", "beta-1"]  # one full page: the total says it is all
+    # One full page: its cursor is followed to an empty page (a total read while others
+    # delete rows cannot say that all is read).
+    assert [m.name for m in c.models(lineage="beta")] == ["beta-0", "beta-1"]
     assert [m.name for m in c.models(lineage="alpha")] == ["alpha-0", "alpha-1", "alpha-2"]
-    assert transport.gets == [("/api/v1/models", "0"), ("/api/v1/models", "0"), ("/api/v1/models", "2")]
+    assert transport.gets == [("/api/v1/models", w) for w in ("offset 0", "after", "offset 0", "after")]
+
+
+def test_the_client_reads_a_server_without_cursors_by_offset_to_the_total(paged: Paged) -> None:
+    """A server with pages but without cursors (no Link header): the client reads by offset
+    and stops at the total."""
+    rows = paged.whole("scenes")
+    seen: list[httpx.Request] = []
+
+    def no_cursors(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        offset, limit = int(request.url.params["offset"]), int(request.url.params["limit"])
+        return httpx.Response(200, json=rows[offset : offset + limit], headers={TOTAL_COUNT_HEADER: str(len(rows))})
+
+    with CSAClient("http://older-server.invalid", api_key=API_KEY, transport=httpx.MockTransport(no_cursors)) as c:
+        c.page_size = 2
+        assert [s.name for s in c.scenes()] == SCENES
+    assert [r.url.params["offset"] for r in seen] == ["0", "2", "4"]
 
 
 def test_the_client_reads_a_server_without_pages_in_one_request(paged: Paged) -> None:
@@ -268,3 +293,108 @@ def test_the_dashboard_pages_still_show_every_row(paged: Paged) -> None:
     assert all(name in pages["/ui/scenes"].text and name in pages["/ui/work"].text for name in SCENES)
     assert all(name in pages["/ui/models"].text for name, _ in MODELS)
     assert all(f"alt=\"frame {name}\"" in pages[f"/ui/scenes/{SCENES[0]}"].text for name in FRAME_ORDER)
+
+
+# --- cursors ----------------------------------------------------------------------------------
+
+
+def _follow(paged: Paged, path: str, limit: int, **params: object) -> list[httpx.Response]:
+    """Every page of ``path`` from the first, each next one from its predecessor's Link."""
+    pages = [paged.http.get(path, params={"limit": limit, **params})]
+    while "next" in pages[-1].links:
+        pages.append(paged.http.get(pages[-1].links["next"]["url"]))
+        assert len(pages) < 20
+    return pages
+
+
+@pytest.mark.parametrize("limit", [1, 2, 3, 5])
+@pytest.mark.parametrize("route", list(ROUTES))
+def test_cursors_read_the_list_once_in_order(paged: Paged, route: str, limit: int) -> None:
+    whole = paged.whole(route)
+    pages = _follow(paged, ROUTES[route], limit)
+    assert all(r.status_code == 200 and r.headers[TOTAL_COUNT_HEADER] == "5" for r in pages)
+    assert list(itertools.chain.from_iterable(r.json() for r in pages)) == whole
+    # A full page links to the next one, and only a full page: the last page is short (or
+    # empty, after a last full page).
+    assert all(len(r.json()) == limit for r in pages[:-1]) and len(pages[-1].json()) < limit
+    assert pages[0].links["next"]["url"].startswith(paged.live.url + ROUTES[route])
+
+
+def test_a_cursor_keeps_the_filter_of_its_list(paged: Paged) -> None:
+    pages = _follow(paged, ROUTES["models"], 1, lineage="alpha")
+    assert [m["name"] for r in pages for m in r.json()] == ["alpha-0", "alpha-1", "alpha-2"]
+
+
+def test_a_cursor_neither_repeats_nor_skips_rows_others_add_or_delete_meanwhile(paged: Paged) -> None:
+    """A frame uploaded before the page read so far shifts every later offset by one: the
+    next page by offset repeats a frame, the cursor's does not; a scene deleted before the
+    page read so far shifts them back: the next page by offset skips a scene, the cursor's
+    does not."""
+    http = paged.http
+    assert http.post("/api/v1/scenes", json={"name": "cursor-live"}).status_code == 201
+    extra = ["cursor-x", "cursor-y", "cursor-z"]
+    try:
+        frames = "/api/v1/scenes/cursor-live/frames"
+        rng = np.random.default_rng(1)
+
+        def upload(name: str) -> None:
+            files = {
+                "color": ("c.png", png(rng.integers(0, 256, (H, W, 3), dtype=np.uint8))),
+                "depth": ("d.png", png(np.full((H, W), 1500, np.uint16))),
+                "pose": ("p.txt", POSE.encode()),
+                "intrinsics": ("k.txt", K.encode()),
+            }
+            assert http.post(frames, files=files, data={"name": name}).status_code == 201
+
+        for name in ("2", "4", "6"):
+            upload(name)
+        first = http.get(frames, params={"limit": 1})
+        assert [f["name"] for f in first.json()] == ["2"]
+        upload("1")  # sorts before the frame read
+        by_offset = http.get(frames, params={"limit": 1, "offset": 1}).json()
+        by_cursor = http.get(first.links["next"]["url"]).json()
+        assert [f["name"] for f in by_offset] == ["2"]  # read twice
+        assert [f["name"] for f in by_cursor] == ["4"]
+
+        for name in extra:
+            assert http.post("/api/v1/scenes", json={"name": name}).status_code == 201
+        ids = {s["name"]: s["id"] for s in paged.whole("scenes")}
+        before_x = [n for n, i in ids.items() if i < ids["cursor-x"]]
+        # The page that ends at cursor-x, then cursor-x itself deleted.
+        page = http.get("/api/v1/scenes", params={"limit": len(before_x) + 1})
+        assert page.json()[-1]["name"] == "cursor-x"
+        assert http.delete("/api/v1/scenes/cursor-x").status_code == 204
+        by_offset = http.get("/api/v1/scenes", params={"limit": 1, "offset": len(before_x) + 1}).json()
+        by_cursor = http.get(page.links["next"]["url"]).json()
+        assert [s["name"] for s in by_offset] == ["cursor-z"]  # cursor-y skipped
+        assert [s["name"] for s in by_cursor] == ["cursor-y", "cursor-z"]
+    finally:
+        for name in ["cursor-live", *extra]:
+            http.delete(f"/api/v1/scenes/{name}")
+    assert [s["name"] for s in paged.whole("scenes")] == SCENES
+
+
+@pytest.mark.parametrize(
+    "cursor",
+    [
+        "not a cursor!",
+        "e30",  # {} : not a list
+        encode_cursor(["7"]),  # a text where the key is a number
+        encode_cursor([True]),
+        encode_cursor([1, 2]),  # another list's key
+        encode_cursor([2**40]),
+        encode_cursor([]),
+        "x" * 513,
+    ],
+)
+def test_a_cursor_this_server_did_not_give_is_a_422_naming_after(paged: Paged, cursor: str) -> None:
+    r = paged.http.get(ROUTES["scenes"], params={"after": cursor})
+    assert r.status_code == 422, r.text[:300]
+    assert r.json()["error"]["field"] == "after"
+    r = paged.http.get(ROUTES["frames"], params={"after": encode_cursor([1])})  # frames: (key, name)
+    assert r.status_code == 422 and r.json()["error"]["field"] == "after"
+
+
+def test_a_cursor_and_an_offset_together_are_a_422(paged: Paged) -> None:
+    r = paged.http.get(ROUTES["scenes"], params={"after": encode_cursor([1]), "offset": 2})
+    assert r.status_code == 422 and r.json()["error"]["field"] == "offset"
