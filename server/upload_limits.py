@@ -28,6 +28,8 @@ def limits_for(settings: Settings) -> list[tuple[re.Pattern[str], int, str]]:
         (re.compile(r"^/api/v1/scenes/[^/]+/archive$"), settings.max_archive_bytes + _MULTIPART_OVERHEAD, "archive"),
         (re.compile(r"^/api/v1/models$"), settings.max_model_upload_bytes + _MULTIPART_OVERHEAD, "checkpoint"),
         (re.compile(r"^/api/v1/predict$"), settings.max_inference_upload_bytes + _MULTIPART_OVERHEAD, "image"),
+        # The dashboard's preview of a prediction (/ui/api/predict-preview): an image, as predict.
+        (re.compile(r"^/api/predict-preview$"), settings.max_inference_upload_bytes + _MULTIPART_OVERHEAD, "image"),
     ]
 
 
