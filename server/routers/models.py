@@ -157,8 +157,12 @@ async def register_model(
                 if size > limit:
                     raise too_large("checkpoint", limit)
                 out.write(chunk)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
-        def check_and_register() -> ModelOut:
+    def check_and_register() -> ModelOut:
+        try:
             card = _checked_card(path, services.settings.max_image_pixels)
             model = register_checkpoint(
                 db, services.store, path, name=name, lineage=lineage, arch=card.arch, metrics=dict(card.metrics or {}), meta={"task": "upload", "card_created": card.created}, make_current=make_current
@@ -169,12 +173,13 @@ async def register_model(
                 db.rollback()
                 raise conflict(f"a model version named {name!r} exists", field="name") from None
             return model_out(db, model)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
 
-        # Loading the weights and copying a file of up to a gigabyte into the store (hashed and
-        # fsynced) take seconds: in a worker thread, so that the event loop serves other requests.
-        return await run_in_threadpool(check_and_register)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    # Loading the weights and copying a file of up to a gigabyte into the store (hashed and
+    # fsynced) take seconds: in a worker thread (which removes ``tmp``, so that a request given
+    # up meanwhile cannot remove the file under it), and the event loop serves other requests.
+    return await run_in_threadpool(check_and_register)
 
 
 @router.get("/{model_ref}", response_model=ModelOut, summary="a model version by id, name or 'current'")
