@@ -166,7 +166,6 @@ class CSAClient:
             total = response.headers.get(TOTAL_COUNT_HEADER, "")
             if not total.isdigit() or len(batch) < self.page_size or len(rows) >= int(total):
                 return rows
-            after = None
 
     # -- service -------------------------------------------------------------------------
 

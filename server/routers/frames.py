@@ -324,7 +324,6 @@ def _store_archive(db, services, scene: Scene, scene_ref: str, tmp: Path, replac
             # extracted folder, which nothing else writes, when the frame is stored.
             images = (color_path, root / "depth" / f"{name}.png", labels_path if parts.labels is not None else None)
             valid_frames.append((name, dataclasses.replace(valid, color=b"", depth=b"", labels=None), images))
-            del parts, valid
         if not valid_frames:
             raise invalid("archive", "no frame with a finite pose")
         added, unchanged, replaced = [], [], []
