@@ -42,12 +42,20 @@ def torch_device(ctx: JobContext) -> str | None:
 
 
 def load_scene(ctx: JobContext, scene_id: int, ground_truth: bool = False, size: tuple[int, int] | None = None) -> Scene:
-    """Read a stored scene with the core reader (ground truth as ``label-nyu40`` if asked)."""
+    """Read a stored scene with the core reader (ground truth as ``label-nyu40`` if asked).
+
+    A job may read one scene more than once: an adapt job's target can also be a pre-training
+    scene of its lineage, or a scene it scores on. The folder is written on the first read (one
+    folder with ground truth, one without) and read again after that: writing it twice would
+    link each stored file onto the link already there."""
+    dest = ctx.workdir / "scenes" / (f"s{scene_id}-labelled" if ground_truth else f"s{scene_id}")
     with ctx.session() as s:
         row = s.get(SceneRow, scene_id)
         if row is None:
             raise LookupError(f"scene {scene_id} no longer exists")
-        folder = write_scene_folder(s, ctx.store, row, ctx.workdir / "scenes" / f"s{scene_id}", ground_truth=ground_truth)
+        folder = dest / row.name
+        if not folder.is_dir():
+            folder = write_scene_folder(s, ctx.store, row, dest, ground_truth=ground_truth)
     return read_scene(folder, size=size, labels=[NYU40_FOLDER] if ground_truth else [], workers=2)
 
 
