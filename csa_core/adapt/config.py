@@ -19,6 +19,7 @@ from csa_core.seg.config import AugmentConfig, official_augment
 Mode = Literal["gi_nl", "ni_nl", "joint"]
 MODES: tuple[str, ...] = ("gi_nl", "ni_nl", "joint")
 JOINT_SCHEDULES: tuple[str, ...] = ("round", "batch")
+REPLAY_DRAWS: tuple[str, ...] = ("even", "random")
 ADABN_PLACEMENTS: tuple[str, ...] = ("paper", "ours")
 
 # docs/method.md "Reference numbers": segmentation Adam lr 1e-5, batch 4.
@@ -34,13 +35,14 @@ PAPER_PRETRAIN_PER_BATCH = 2
 PAPER_PREFIT_EPOCHS = 10
 PAPER_JOINT_EPOCHS = 50
 PAPER_FIT_EPOCHS = PAPER_PREFIT_EPOCHS + PAPER_JOINT_EPOCHS
-# The official code's hash grid: per-level scale exp2(log2(2048 * bound / 16) / 15) with
-# bound 4, i.e. a finest resolution of 2048 * 4 over the grid's cube (docs/presets.md
-# "The paper preset").
-PAPER_FINEST_RESOLUTION = 2048 * 4
+# The official code's hash grid spans the fixed cube [-bound, bound]^3 with bound 4
+# (NerfConfig.normalization="cube"), at a per-level scale exp2(log2(2048 * bound / 16) / 15),
+# i.e. a finest resolution of 2048 * 4 over the cube (docs/presets.md "The paper preset").
+PAPER_CUBE_BOUND = 4.0
+PAPER_FINEST_RESOLUTION = 2048 * int(PAPER_CUBE_BOUND)
 # docs/method.md "Baselines" (CoTTA): the teacher averages its softmax over these scales, each
 # with and without flip; ours for CPU runs: half the teacher passes (6 instead of 12), 0.51 vs 0.90 s per image
-# (benchmarks/RESULTS.md "Baselines").
+# (benchmarks/results/components.md "Baselines").
 PAPER_COTTA_SCALES = (0.5, 0.75, 1.0, 1.25, 1.5, 1.75)
 CPU_COTTA_SCALES = (0.75, 1.0, 1.5)
 
@@ -67,7 +69,7 @@ class NerfBudget:
     ``rays_per_step`` at a time at the fit's starting rate (``optim.lr``): the budget's,
     whatever the NeRF preset says (``fast`` draws label-balanced rays and adds 300 semantic
     steps of its own for label fusion alone; the adaptation budgets were measured without
-    them, benchmarks/RESULTS.md "Label-balanced ray draws").
+    them, benchmarks/results/fusion.md "Label-balanced ray draws").
 
     The remaining fields override the preset's numbers when set: ray batch, hash table size,
     levels and finest resolution, the semantic feature table's levels (``0``: the semantic
@@ -169,6 +171,11 @@ class ReplayConfig:
 
     buffer_size: int = PAPER_BUFFER_SIZE  # docs/method.md "Remember": 100 pairs, split equally among previous scenes
     views: Literal["train", "novel"] = "train"  # rendered at training or novel viewpoints
+    # Which views of each earlier scene (csa_core.adapt.replay): "random" (the paper) draws
+    # floor(buffer_size / n) of the n earlier scenes' views each at random, seeded by ``seed``
+    # and the step; "even" (ours) gives the remainder of the split to the oldest scenes and
+    # spaces each scene's views evenly along its trajectory.
+    draw: Literal["even", "random"] = "even"
     pretrain_fraction: float = (
         PAPER_PRETRAIN_FRACTION  # docs/method.md "Remember": 10% of the pre-training data
     )
@@ -230,11 +237,13 @@ class AdaptConfig:
     collapse: CollapseConfig = field(default_factory=CollapseConfig)
     cotta: CoTTABudget = field(default_factory=CoTTABudget)  # the CoTTA baseline's
     # AdaBN: re-estimate BatchNorm statistics on the scene's camera images (docs/method.md
-    # "Adapt"), for every method alike; off: no method re-estimates anything. Where, with
-    # ``adabn_placement``: "paper" at the end of a step only, and for our method only after
-    # training on rendered images (NI+NL, joint), as the paper does; "ours" also before the
-    # network labels the scene (the pseudo-labels, every joint round of the per-round
-    # schedule, the baselines' predictions, CoTTA's online pass) and after GI+NL.
+    # "Adapt"), for every method by one rule; off: no method re-estimates anything. Where, with
+    # ``adabn_placement``: "paper" at the end of a step only, and only for a network that
+    # trained on rendered images (ours in NI+NL, joint with ``joint.render_images``), as the
+    # paper does: our GI+NL, Mapping, CoTTA and fine-tuning train on camera images and get
+    # none; "ours" at the end of every method's step, and also before the network labels
+    # the scene (the pseudo-labels, every joint round of the per-round schedule, the
+    # baselines' predictions, CoTTA's online pass).
     adabn: bool = True
     adabn_placement: Literal["paper", "ours"] = "ours"
     # Also mix the pre-training replay slice into those statistics. Off by default: on a
@@ -256,6 +265,11 @@ class AdaptConfig:
                 f"AdaptConfig: adabn_placement must be one of {', '.join(ADABN_PLACEMENTS)}, "
                 f"got {self.adabn_placement!r}"
             )
+        if self.replay.draw not in REPLAY_DRAWS:
+            raise ValueError(
+                f"AdaptConfig: replay.draw must be one of {', '.join(REPLAY_DRAWS)}, "
+                f"got {self.replay.draw!r}"
+            )
         if self.joint.schedule not in JOINT_SCHEDULES:
             raise ValueError(
                 f"AdaptConfig: joint.schedule must be one of {', '.join(JOINT_SCHEDULES)}, "
@@ -275,8 +289,8 @@ class AdaptConfig:
         return self.mode == "ni_nl" or (self.mode == "joint" and self.joint.render_images)
 
     def adabn_after_training(self, rendered: bool) -> bool:
-        """Whether our step ends with AdaBN, after training on rendered images (``rendered``)
-        or on camera images (GI+NL)."""
+        """Whether a method's step ends with AdaBN, after training on rendered images
+        (``rendered``) or on camera images (our GI+NL and every baseline)."""
         return self.adabn and (rendered or self.adabn_placement == "ours")
 
     def to_dict(self) -> dict[str, Any]:
@@ -284,20 +298,25 @@ class AdaptConfig:
 
 
 def paper() -> AdaptConfig:
-    """The paper's configuration as its official code runs it, for GPUs (it runs on a CPU,
-    slowly). Every number, and where the paper and the official code disagree, is in
-    docs/presets.md "The paper preset"; the network it expects (DeepLabv3-ResNet101 at
-    320x240) is the ``paper`` pre-training preset of ``csa_core.seg.config``.
+    """The paper's configuration, for GPUs (it runs on a CPU, slowly); where the paper is
+    silent, its official code's. Every number, and where the paper and the official code
+    disagree, is in docs/presets.md "The paper preset"; the network it expects
+    (DeepLabv3-ResNet101 at 320x240) is the ``paper`` pre-training preset of
+    ``csa_core.seg.config``; :func:`paper_official` takes the official code's side where the
+    two disagree.
 
     NeRF: the ``reference`` preset (hash grid 16 levels x 2 features, table 2^19, base
     resolution 16, 256 uniform + 256 importance samples, 4096 rays per step, Adam 1e-2,
     betas (0.9, 0.99), eps 1e-15) with the official finest resolution, at a fixed rate,
-    without our semantic feature table, and with the official semantic MLP (one hidden
-    layer), each step's 4096 rays drawn from one training view. Fit 60 epochs before
+    without our semantic feature table, with the official semantic MLP (one hidden layer)
+    reading the geometry features behind a stop-gradient (the paper's: no semantic gradient
+    reaches the density MLP or the hash table), in the official fixed cube
+    (``normalization="cube"``), each step's 4096 rays drawn from one training view. Fit 60 epochs before
     the pseudo-labels (GI+NL, NI+NL); joint: 10 epochs, then
     50 network epochs alternating per batch with full NeRF steps (equal NeRF budgets).
-    Network: Adam 1e-5, batch 4, 50 epochs, constant rate. Replay: 100 pairs, 10% of the
-    pre-training data, batches of 2 + 2. No collapse guard, AdaBN only after training
+    Network: Adam 1e-5, batch 4, 50 epochs, constant rate. Replay: floor(100 / n) views of
+    each of the n earlier scenes drawn at random, 10% of the pre-training data, batches of
+    2 + 2. No collapse guard, AdaBN only after training on rendered images, for every method
     (docs/method.md "Adapt"), no BatchNorm memory.
     """
     return AdaptConfig(
@@ -310,10 +329,16 @@ def paper() -> AdaptConfig:
             finest_resolution=PAPER_FINEST_RESOLUTION,
             semantic_grid_levels=0,
             semantic_hidden_layers=1,
-            semantic_detach_geometry=False,
+            # The paper's stop-gradient: the semantic loss does not reach the geometry.
+            semantic_detach_geometry=True,
             final_lr_fraction=1.0,
-            # Each step's rays from one training view, as the official code draws them.
-            preset_overrides=("optim.ray_batches=per_view",),
+            preset_overrides=(
+                # Each step's rays from one training view, as the official code draws them.
+                "optim.ray_batches=per_view",
+                # The fixed cube [-4, 4]^3 of the official code (PAPER_FINEST_RESOLUTION's bound).
+                "normalization=cube",
+                f"cube_bound={PAPER_CUBE_BOUND}",
+            ),
         ),
         seg=SegBudget(
             lr=PAPER_SEG_LR,
@@ -324,6 +349,7 @@ def paper() -> AdaptConfig:
         joint=JointBudget(rounds=PAPER_JOINT_EPOCHS, seg_epochs_per_round=1, schedule="batch"),
         replay=ReplayConfig(
             buffer_size=PAPER_BUFFER_SIZE,
+            draw="random",
             pretrain_fraction=PAPER_PRETRAIN_FRACTION,
             pretrain_per_batch=PAPER_PRETRAIN_PER_BATCH,
         ),
@@ -332,6 +358,18 @@ def paper() -> AdaptConfig:
         adabn_placement="paper",
         pool_batchnorm=False,
     )
+
+
+def paper_official() -> AdaptConfig:
+    """:func:`paper` where the official code (ethz-asl/ucsa_neural_rendering) departs from the
+    paper: the semantic MLP reads the geometry features undetached, so the semantic loss
+    reaches the density MLP and the hash table (the rendering weights stay detached), and no
+    AdaBN step (docs/presets.md "The paper preset")."""
+    config = paper()
+    config.preset = "paper-official"
+    config.nerf.semantic_detach_geometry = False
+    config.adabn = False
+    return config
 
 
 def cpu() -> AdaptConfig:
@@ -348,15 +386,15 @@ def cpu() -> AdaptConfig:
     depth to guide the samples). Batch composition
     and the 10% pre-training replay are kept. No augmentation of the training pairs (the
     paper trains with the official code's; over 3 seeds of the multi-step experiment ours cost
-    1.2 ACC and the official one 1.4 against none: benchmarks/RESULTS.md "Deviations measured
-    with the multi-step experiment, second set"). The joint rounds train the network on the
+    1.2 ACC and the official one 1.4 against none: benchmarks/results/continual.md "Deviations
+    measured with the multi-step experiment, second set"). The joint rounds train the network on the
     camera images with the NeRF's labels (the paper: on its rendered images): at 300 fit steps
     the renders are blurred, and over 3 seeds camera images gave 0.8 ACC more (27.6 against
-    26.8; benchmarks/RESULTS.md "Joint rounds on camera images"); the step then renders labels
-    only, which takes about half the time. The NeRF's learning rate is fixed, as in the
+    26.8; benchmarks/results/continual.md "Joint rounds on camera images"); the step then
+    renders labels only, which takes about half the time. The NeRF's learning rate is fixed, as in the
     paper (the ``fast`` preset decays it; at 300 steps the decay cost NeRF labels and render
-    time and gained no accuracy: benchmarks/RESULTS.md "Deviations measured with the
-    multi-step experiment"). docs/deviations.md lists every departure.
+    time and gained no accuracy: benchmarks/results/continual.md "Deviations measured with the
+    multi-step experiment, first set"). docs/deviations.md lists every departure.
     """
     return AdaptConfig(
         preset="cpu",
@@ -399,11 +437,11 @@ def tiny() -> AdaptConfig:
     )
 
 
-PRESETS = {"paper": paper, "cpu": cpu, "tiny": tiny}
+PRESETS = {"paper": paper, "paper-official": paper_official, "cpu": cpu, "tiny": tiny}
 
 
 def preset(name: str) -> AdaptConfig:
-    """A fresh config of the preset ``name`` (``paper``, ``cpu`` or ``tiny``)."""
+    """A fresh config of the preset ``name`` (``paper``, ``paper-official``, ``cpu`` or ``tiny``)."""
     try:
         return PRESETS[name]()
     except KeyError:

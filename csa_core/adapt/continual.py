@@ -146,7 +146,7 @@ def run_continual(
         b=b,
         metrics={},
         config={
-            **config.to_dict(),
+            **state.config.to_dict(),  # the method's (a variant of ours sets its replay)
             "method": method,
             "method_settings": runner.settings(),
             "pretrain_scenes": [s.name for s in pretrain_scenes],
@@ -190,7 +190,7 @@ def run_continual(
                 "task": "continual",
                 "method": method,
                 "scenes": names,
-                "adapt": config.to_dict(),
+                "adapt": state.config.to_dict(),
             },
             "metrics": _nan_to_none(result.metrics),
         }

@@ -17,17 +17,23 @@ the memory only it keeps, so every method is scored by the same code on the same
   Stores two extra network copies (teacher and source).
 - ``finetune``: fine-tuning on the network's own predictions, no NeRF, no replay of any
   kind: the lower bound that shows what the 3D fusion and the memory add.
+- ``ours-pretrain-replay`` and ``ours-novel-views``: the paper's two other rows of ours in
+  Tab. 3, "Ours (I_pre replay only)" (no replay buffer: only the pre-training slice) and
+  "Ours (novel viewpoints)" (the buffer rendered at novel viewpoints). Each is ``ours`` with
+  the replay fields of :data:`OURS_VARIANTS` set on the run's config (:func:`method_config`).
 
 Mapping and the lower bound train with the same loop as ours (Adam, batch composition with
 the pre-training slice where there is one), so a difference in R comes from the labels and
 the memory, not from the optimiser. AdaBN (``AdaptConfig.adabn``, placed by
-``adabn_placement``) applies to every method alike, CoTTA included, so a comparison can be
-made with it on and off. Mapping's own :func:`mapping_adapt` uses
+``adabn_placement``) applies to every method by one rule, CoTTA included, so a comparison
+can be made with it on and off: with the ``paper`` placement only a network trained on
+rendered images gets it, so the baselines, which train on camera images, get none. Mapping's own :func:`mapping_adapt` uses
 the segmentation trainer instead, which cannot mix in the pre-training slice.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
 from collections.abc import Sequence
@@ -71,8 +77,14 @@ NOT_BANKED = {
     ),
 }
 
-# Methods of the continual protocol; "ours" runs config.mode.
-METHODS: tuple[str, ...] = ("ours", "mapping", "cotta", "finetune")
+# The paper's Tab. 3 rows of ours beside "ours" (training viewpoints): the replay fields each
+# sets on the run's config, through the one override path (csa_core.overrides).
+OURS_VARIANTS: dict[str, tuple[str, ...]] = {
+    "ours-pretrain-replay": ("replay.buffer_size=0",),  # "Ours (I_pre replay only)"
+    "ours-novel-views": ("replay.views=novel",),  # "Ours (novel viewpoints)"
+}
+# Methods of the continual protocol; "ours" (and its variants) runs config.mode.
+METHODS: tuple[str, ...] = ("ours", "mapping", "cotta", "finetune", *OURS_VARIANTS)
 # Methods of the one-step protocol: our three modes by name, then the baselines.
 ONE_STEP_METHODS: tuple[str, ...] = (*MODES, "mapping", "cotta", "finetune")
 
@@ -116,10 +128,14 @@ class ContinualMethod:
         pretrain: PretrainReplay | None,
         before_labels: bool = False,
     ) -> None:
-        """AdaBN on the scene's camera images: at the end of a step with ``config.adabn``,
-        before the network labels the scene (``before_labels``) only where
-        ``config.adabn_placement`` puts it there too."""
-        wanted = self.config.adabn_before_labels if before_labels else self.config.adabn
+        """AdaBN on the scene's camera images, for a baseline (trained on camera images):
+        before the network labels the scene (``before_labels``) or at the end of a step,
+        where ``config.adabn`` and ``config.adabn_placement`` put it."""
+        wanted = (
+            self.config.adabn_before_labels
+            if before_labels
+            else self.config.adabn_after_training(rendered=False)
+        )
         if wanted:
             apply_adabn(
                 model,
@@ -155,7 +171,7 @@ class Ours(ContinualMethod):
         t0 = time.perf_counter()
         previous = [n for n in bank.scenes if n != scene.name]
         replay = None
-        if previous:
+        if previous and cfg.replay.buffer_size > 0:
             notify(on_progress, f"rendering replay from {len(previous)} earlier scene(s)", 0.0)
             replay = ReplayBuffer.from_memory_bank(
                 bank,
@@ -164,6 +180,8 @@ class Ours(ContinualMethod):
                 previous,
                 cfg.replay.max_render_samples,
                 device=cfg.seg.device,
+                draw=cfg.replay.draw,
+                seed=cfg.replay.seed,
             )
         t_replay = time.perf_counter() - t0
         result = adapt_one_step(
@@ -195,6 +213,39 @@ class Ours(ContinualMethod):
         per_scene = state.bank.bytes_per_scene() if state.bank is not None else {}
         total = sum(per_scene.values())
         return {"nerf_per_scene": per_scene, "nerf_total": total, "method_total": total}
+
+
+def method_config(name: str, config: AdaptConfig) -> AdaptConfig:
+    """The config a run of method ``name`` runs with: for a variant of ours
+    (:data:`OURS_VARIANTS`), a copy of ``config`` with the variant's replay fields set (they
+    have the last word, over ``--set``); ``config`` itself for every other method."""
+    items = OURS_VARIANTS.get(name)
+    if not items:
+        return config
+    from csa_core.overrides import apply_overrides
+
+    return apply_overrides(copy.deepcopy(config), items, flag=f"method {name}")
+
+
+class OursPretrainReplay(Ours):
+    """The paper's "Ours (I_pre replay only)" (Tab. 3): ours without the replay buffer; the
+    network still trains with the pre-training slice. It banks its NeRFs as ours does (the
+    service renders from them), though no later step of it replays them."""
+
+    name = "ours-pretrain-replay"
+
+    def __init__(self, config: AdaptConfig):
+        super().__init__(method_config(self.name, config))
+
+
+class OursNovelViews(Ours):
+    """The paper's "Ours (novel viewpoints)" (Tab. 3): ours with the replay buffer rendered at
+    novel viewpoints, midway between consecutive training poses (docs/method.md "Remember")."""
+
+    name = "ours-novel-views"
+
+    def __init__(self, config: AdaptConfig):
+        super().__init__(method_config(self.name, config))
 
 
 class Mapping(ContinualMethod):
@@ -407,7 +458,8 @@ def pretrain_context(
 
 
 _CLASSES: dict[str, type[ContinualMethod]] = {
-    cls.name: cls for cls in (Ours, Mapping, CoTTAMethod, SelfTraining)
+    cls.name: cls
+    for cls in (Ours, Mapping, CoTTAMethod, SelfTraining, OursPretrainReplay, OursNovelViews)
 }
 
 

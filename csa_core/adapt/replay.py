@@ -1,10 +1,14 @@
 """Replay: a fixed-size buffer rendered from the memory bank, a slice of the pre-training data,
 and the batch composition that mixes them with the current scene (docs/method.md "Remember").
 
-Split rule: ``size`` pairs over ``n`` previous scenes gives every scene ``size // n`` and the
-first ``size % n`` scenes (the oldest) one more, e.g. 100 over 3 -> 34, 33, 33. Views are
-picked evenly spaced along each scene's training trajectory (or its novel viewpoints,
-midway between consecutive training frames), so a scene's share covers the whole room.
+Two draws (``ReplayConfig.draw``). ``even`` (ours): ``size`` pairs over ``n`` previous scenes
+give every scene ``size // n`` and the first ``size % n`` scenes (the oldest) one more, e.g.
+100 over 3 -> 34, 33, 33, and the views are picked evenly spaced along each scene's training
+trajectory (or its novel viewpoints, midway between consecutive training frames), so a
+scene's share covers the whole room. ``random`` (the paper): every scene gets ``size // n``
+(100 over 3 -> 33, 33, 33) views drawn at random without replacement (all of them, in a
+random order, repeated when more are asked than there are), from a generator seeded by the
+seed and the number of previous scenes, so a run is deterministic and each step draws anew.
 """
 
 from __future__ import annotations
@@ -21,13 +25,16 @@ from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.nerf.render import render_image, view_poses
 
 
-def split_buffer(size: int, scenes: int) -> list[int]:
-    """Pairs per previous scene: equal shares, the remainder to the oldest scenes."""
+def split_buffer(size: int, scenes: int, remainder: bool = True) -> list[int]:
+    """Pairs per previous scene: equal shares, the remainder to the oldest scenes (without
+    ``remainder``: dropped, the paper's floor(size / scenes) each)."""
     if size < 0 or scenes < 0:
         raise ValueError(f"split_buffer: size and scenes must be >= 0, got {size}, {scenes}")
     if scenes == 0:
         return []
     base, extra = divmod(size, scenes)
+    if not remainder:
+        extra = 0
     return [base + (1 if k < extra else 0) for k in range(scenes)]
 
 
@@ -39,6 +46,15 @@ def evenly_spaced(available: int, count: int) -> list[int]:
     if count >= available:
         return [k % available for k in range(count)]
     return [int(round(x)) for x in np.linspace(0, available - 1, count)]
+
+
+def random_views(available: int, count: int, rng: np.random.Generator) -> list[int]:
+    """``count`` indices of ``range(available)`` drawn at random without replacement (every
+    index in a fresh random order, again and again, when more are asked than there are)."""
+    if available <= 0 or count <= 0:
+        return []
+    rounds = -(-count // available)
+    return np.concatenate([rng.permutation(available) for _ in range(rounds)])[:count].tolist()
 
 
 @dataclass
@@ -73,24 +89,36 @@ class ReplayBuffer:
         scenes: Sequence[str] | None = None,
         max_render_samples: int | None = None,
         device: str | None = None,
+        draw: str = "even",
+        seed: int = 0,
     ) -> ReplayBuffer:
         """Render ``size`` pairs split equally among ``scenes`` (default: every scene in the bank)
-        at their training or novel viewpoints. ``max_render_samples`` caps the marching
+        at their training or novel viewpoints, the views picked by ``draw`` (``even`` or
+        ``random``, seeded by ``seed``; see the module docstring). ``max_render_samples`` caps the marching
         samples per ray: stored NeRFs have no sensor depth to place samples, and on a CPU
         the cap decides what replay costs. The NeRFs render on ``device`` (``None``/``"auto"``:
         CUDA when present), the step's segmentation device."""
         if views not in ("train", "novel"):
             raise ValueError(f"ReplayBuffer: views must be 'train' or 'novel', got {views!r}")
+        if draw not in ("even", "random"):
+            raise ValueError(f"ReplayBuffer: draw must be 'even' or 'random', got {draw!r}")
         names = list(bank.scenes if scenes is None else scenes)
         buffer = cls(views=views)
-        for scene, count in zip(names, split_buffer(size, len(names)), strict=True):
+        rng = np.random.default_rng([seed, len(names)])
+        shares = split_buffer(size, len(names), remainder=draw == "even")
+        for scene, count in zip(names, shares, strict=True):
             if count == 0:
                 continue
             nerf = bank.load(scene, device=device)
             if max_render_samples is not None:
                 nerf.config.sampler.max_render_samples = max_render_samples
             poses = view_poses(nerf, views)
-            for k in evenly_spaced(len(poses), count):
+            picked = (
+                random_views(len(poses), count, rng)
+                if draw == "random"
+                else evenly_spaced(len(poses), count)
+            )
+            for k in picked:
                 name, pose = poses[k]
                 view = render_image(nerf, pose, name=name)
                 buffer.images.append(view.color)

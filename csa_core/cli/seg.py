@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from csa_core.cli.args import positive_int, size_arg
+from csa_core.cli.args import add_set_argument, positive_int, size_arg
 
 if TYPE_CHECKING:
     from csa_core.seg.config import PretrainConfig
@@ -117,6 +117,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     t.add_argument("--seed", type=int, default=defaults.seed)
     t.add_argument("--overwrite", action="store_true")
+    add_set_argument(t, "PretrainConfig", "train.final_lr=1e-6 or train.schedule=poly")
     _common(t)
     t.set_defaults(func=_pretrain)
 
@@ -190,9 +191,10 @@ def _setup_threads(args: argparse.Namespace) -> None:
 
 def pretrain_config(args: argparse.Namespace) -> PretrainConfig:
     """The pre-training config of ``csa seg pretrain``: the ``--preset``'s, with the options
-    given on the command line in place of its values."""
+    given on the command line in place of its values, then the ``--set`` overrides."""
     from dataclasses import replace
 
+    from csa_core.overrides import apply_overrides
     from csa_core.seg.config import pretrain_preset
 
     config = pretrain_preset(args.preset)
@@ -211,7 +213,7 @@ def pretrain_config(args: argparse.Namespace) -> PretrainConfig:
     )
     if args.no_augment:
         config.augment = None
-    return config
+    return apply_overrides(config, getattr(args, "set", None) or [])
 
 
 def _pretrain(args: argparse.Namespace) -> int:

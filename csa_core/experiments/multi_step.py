@@ -11,6 +11,11 @@ draws both rows per method over the steps. ``--resume`` reuses the runs an earli
 invocation into the same ``--out`` finished with the same inputs
 (``ExperimentInputs.finished_run``) and does the rest: a long experiment can be stopped and
 continued, or split over processes that write different methods into copies of one folder.
+
+Besides ours, Mapping, CoTTA and fine-tuning (the default list), ``--methods`` can name the
+paper's two other rows of ours: ``ours-pretrain-replay``, "Ours (I_pre replay only)", and
+``ours-novel-views``, "Ours (novel viewpoints)" (``csa_core.adapt.methods.OURS_VARIANTS``);
+each run records the config it ran with, the variant's replay fields included.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import logging
 import numpy as np
 
 from csa_core.adapt.continual import run_continual, val_mious
-from csa_core.adapt.methods import METHODS
+from csa_core.adapt.methods import METHODS, OURS_VARIANTS, method_config
 from csa_core.eval.continual import previous_row
 from csa_core.experiments.inputs import ExperimentInputs
 from csa_core.experiments.report import (
@@ -35,13 +40,16 @@ from csa_core.experiments.report import (
 log = logging.getLogger(__name__)
 
 NAME = "multi-step"
-DEFAULT_METHODS: tuple[str, ...] = METHODS
+DEFAULT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m not in OURS_VARIANTS)
 ALLOWED_METHODS: tuple[str, ...] = METHODS
 TITLES = {
     "ours": "CSA (ours)",
     "mapping": "Mapping",
     "cotta": "CoTTA",
     "finetune": "fine-tune (no replay)",
+    # The paper's Tab. 3 rows of the same names.
+    "ours-pretrain-replay": "CSA (ours), I_pre replay only",
+    "ours-novel-views": "CSA (ours), novel viewpoints",
 }
 METRICS: tuple[str, ...] = ("acc", "a", "fwt", "bwt")
 
@@ -66,7 +74,7 @@ def run(inputs: ExperimentInputs) -> ExperimentReport:
     b = val_mious(inputs.network(), inputs.scenes, inputs.device) if inputs.resume else None
     for method, adabn in entries:
         for seed in inputs.seeds:
-            config = inputs.config(seed, adabn=adabn)
+            config = method_config(method, inputs.config(seed, adabn=adabn))
             parts = (NAME, method, f"adabn-{adabn_name(adabn)}", f"seed{seed}")
             work = inputs.out.joinpath("runs", *parts)
             result = inputs.finished_run(parts, config, method, b) if b is not None else None

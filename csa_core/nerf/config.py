@@ -28,13 +28,13 @@ class HashEncodingConfig:
     finest_resolution: int = 2048  # Instant-NGP / torch-ngp default for unit-cube scenes
     # Ours: torch.compile the corner computation (integer hashing and trilinear weights, many
     # small elementwise steps that inductor fuses into one loop). Measured on 2 CPU cores
-    # (benchmarks/RESULTS.md, "Label fusion speed"): field forward + backward 1.4x, inference
+    # (benchmarks/results/speed.md, "Label fusion speed"): field forward + backward 1.4x, inference
     # 1.9x, but 30 s (cached) to 100 s (first time) to compile in every new process, so off by
     # default; falls back to eager if compiling fails.
     compile: bool = False
     # Ours: ``auto`` encodes float32 positions on the CPU with a fused C kernel
-    # (csa_core/nerf/hash_kernel.py; benchmarks/RESULTS.md, "A fused C kernel for the hash
-    # encoding") where a C compiler is present, else in PyTorch; ``torch``: always PyTorch.
+    # (csa_core/nerf/hash_kernel.py; benchmarks/results/speed.md, "A fused C kernel for the
+    # hash encoding") where a C compiler is present, else in PyTorch; ``torch``: always PyTorch.
     implementation: Literal["auto", "torch"] = "auto"
 
     def __post_init__(self) -> None:
@@ -98,7 +98,7 @@ class SamplerConfig:
     render_depth_guided: bool = False  # paper: every view renders with the ``render`` sampler
     render_band_samples: int = 8  # depth-guided rendering: samples in the band of each ray
     # Ours: depth-guided rendering estimates the surface of rays in depth holes instead of
-    # marching them (benchmarks/RESULTS.md, "Depth holes and unseen surfaces"); False = march.
+    # marching them (benchmarks/results/speed.md, "Depth holes and unseen surfaces"); False = march.
     render_hole_estimate: bool = True
     render_estimate_step: float = 0.5  # hole estimate: march step, in occupancy cells
     render_estimate_band_scale: float = 2.0  # hole estimate: band width against a measurement's
@@ -182,8 +182,8 @@ class OptimConfig:
     # Ours (0 = paper): after the joint fit, steps on the semantic head alone (geometry frozen,
     # samples placed the way labels are rendered), ``semantic_rays_per_step`` rays each at a
     # constant ``lr * semantic_lr_fraction``. A semantic step costs a fraction of a full one,
-    # so the labels of every pixel are seen several times (benchmarks/RESULTS.md, "Label fusion
-    # speed and quality").
+    # so the labels of every pixel are seen several times (benchmarks/results/speed.md, "Label
+    # fusion speed and quality").
     semantic_steps: int = 0
     semantic_rays_per_step: int = 4096
     semantic_lr_fraction: float = 1.0
@@ -237,12 +237,29 @@ class NerfConfig:
     # Ours: cells for the unseen test (visibility.py): the box cut into this many cells per
     # axis, marked by the fit where a training view's depth measured a surface (and one cell
     # around); 0 = none (the default), the test then uses the training cameras' frusta. At
-    # 128 the cells knew occlusion but were not better than the frusta (benchmarks/RESULTS.md
+    # 128 the cells knew occlusion but were not better than the frusta (benchmarks/results/fusion.md
     # "Unseen surfaces: cells the training depth measured"), and cost 256 KB per checkpoint.
     observed_resolution: int = 0
+    # Where the hash grid sits (csa_core/nerf/normalization.py). "box" (ours): the scene's
+    # box, camera centres and measured depth padded by 10%. "cube" (the paper, the `paper`
+    # adaptation preset): the official code's fixed cube, the poses centred on the point the
+    # cameras look at and scaled so that they average ``cube_camera_distance`` units from it,
+    # the grid spanning [-cube_bound, cube_bound]^3 of those units (docs/presets.md
+    # "The paper preset").
+    normalization: Literal["box", "cube"] = "box"
+    cube_bound: float = 4.0
+    cube_camera_distance: float = 1.32
     seed: int = 0
 
     def __post_init__(self) -> None:
+        if self.normalization not in ("box", "cube"):
+            raise ValueError(
+                f"normalization must be 'box' or 'cube', got {self.normalization!r}"
+            )
+        for name in ("cube_bound", "cube_camera_distance"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and 0 < value < math.inf):
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         if not (isinstance(self.observed_resolution, int) and 0 <= self.observed_resolution <= 512):
             raise ValueError(
                 f"observed_resolution must be an integer in [0, 512], got {self.observed_resolution!r}"
@@ -269,6 +286,10 @@ class NerfConfig:
             render_unseen_unknown=d.get("render_unseen_unknown", False),
             # Checkpoints written before the cells existed have none.
             observed_resolution=d.get("observed_resolution", 0),
+            # Checkpoints written before the fixed cube existed used the scene's box.
+            normalization=d.get("normalization", "box"),
+            cube_bound=d.get("cube_bound", 4.0),
+            cube_camera_distance=d.get("cube_camera_distance", 1.32),
             seed=d["seed"],
         )
 
@@ -285,7 +306,7 @@ def _fast() -> NerfConfig:
     fitted within the budget) and then 300 semantic-head steps of 8192 rays at a tenth of the
     rate (about two thirds of a pass over every training pixel's label at 200 views of 160x120,
     on the finished geometry). Measured against the voxel map on every synthetic family, clean and hard, and the real
-    7-Scenes kitchen: benchmarks/RESULTS.md "The `fast` preset for label fusion". The
+    7-Scenes kitchen: benchmarks/results/fusion.md "The `fast` preset for label fusion". The
     adaptation budgets (``csa_core.adapt.config``) set their own draws and semantic steps."""
     return NerfConfig(
         preset="fast",
@@ -298,13 +319,13 @@ def _fast() -> NerfConfig:
             render_depth_guided=True,
             render_band_color=True,
             # 6, not 8: labels within 0.2 mIoU, renders in 65-80% of the time; the semantic
-            # steps keep the fit's 8 (benchmarks/RESULTS.md, "Fewer band samples and one
+            # steps keep the fit's 8 (benchmarks/results/speed.md, "Fewer band samples and one
             # corner layout").
             render_band_samples=6,
             # Views without depth march twice the grid's step, stop at transmittance 1/100 and
             # drop samples of weight below 1/1000: within 0.1 mIoU and 0.1 dB of the march at
             # the grid's step, in under half its time, 0.64-0.74 s per novel view on three
-            # rooms (benchmarks/RESULTS.md, "A cheaper march for novel views").
+            # rooms (benchmarks/results/speed.md, "A cheaper march for novel views").
             render_march_steps=256,
             render_early_stop=1e-2,
             render_min_weight=1e-3,

@@ -25,7 +25,7 @@ from csa_core.errors import CSAInputError
 from csa_core.nerf.config import NerfConfig, preset, scaled_semantic_steps
 from csa_core.nerf.losses import psnr
 from csa_core.nerf.model import SceneInfo, SemanticNerf
-from csa_core.nerf.normalization import scene_box_from_frames
+from csa_core.nerf.normalization import fitted_box
 from csa_core.nerf.rays import RayBank
 from csa_core.nerf.samplers import OccupancySampler
 from csa_core.nerf.trainer import NerfTrainer
@@ -126,7 +126,7 @@ def fit_semantic_nerf(
         )
 
     gen = torch.Generator().manual_seed(cfg.seed)
-    box = scene_box_from_frames(frames, scene.intrinsics, seed=cfg.seed)
+    box = fitted_box(frames, scene.intrinsics, cfg)
     info = SceneInfo(
         name=scene.name,
         intrinsics=scene.intrinsics,

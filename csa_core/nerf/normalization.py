@@ -1,6 +1,7 @@
 """Scene normalisation: the metric world box that the hash grid covers.
 
-Callers always use metric world poses; the field sees ``(x - center) / extent + 0.5`` in the
+Two placements (``NerfConfig.normalization``): ``box`` (ours), described here, and ``cube``
+(the paper's fixed cube, :func:`fixed_cube_box`). Callers always use metric world poses; the field sees ``(x - center) / extent + 0.5`` in the
 unit cube. The box is found from the camera centres and the measured depth (robust
 percentiles, so flying pixels do not inflate it, reaching at most three quarters of the size
 of the bulk of the points beyond it, so that a few percent of far outliers cannot either),
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -20,6 +22,9 @@ from torch import Tensor
 from csa_core.data.camera import Intrinsics, backproject
 from csa_core.data.scene import Frame
 from csa_core.errors import CSAInputError
+
+if TYPE_CHECKING:
+    from csa_core.nerf.config import NerfConfig
 
 DEFAULT_EXTENT_WITHOUT_DEPTH = 6.0  # metres of scene around the cameras when no depth is known
 _MARGIN = 0.1  # fraction of the box added on every side
@@ -117,3 +122,73 @@ def scene_box_from_frames(
     extent = max(extent, 1e-3)
     c = (lo + hi) / 2.0
     return SceneBox((float(c[0]), float(c[1]), float(c[2])), extent)
+
+
+# Pairs of optical axes more parallel than this (squared sine of their angle) give no point
+# both cameras look at (the official convention's weight cut-off).
+_MIN_AXIS_WEIGHT = 1e-5
+_MAX_ATTENTION_CAMERAS = 512  # cameras paired to find the point they look at (evenly picked)
+
+
+def attention_point(poses: np.ndarray) -> np.ndarray:
+    """The point the cameras look at: for every pair of cameras, the midpoint of the closest
+    points of their optical axes (in front of both cameras), averaged with the squared sine
+    of the axes' angle as weight, so near-parallel pairs count little. Without any
+    converging pair: the mean camera centre. ``poses`` (N, 4, 4) camera-to-world, OpenCV
+    axes (a camera looks along its +z)."""
+    if len(poses) > _MAX_ATTENTION_CAMERAS:
+        poses = poses[np.linspace(0, len(poses) - 1, _MAX_ATTENTION_CAMERAS).round().astype(int)]
+    o = poses[:, :3, 3]
+    d = poses[:, :3, 2] / np.linalg.norm(poses[:, :3, 2], axis=1, keepdims=True)
+    oa, ob = o[:, None], o[None, :]
+    da, db = d[:, None], d[None, :]
+    c = np.cross(da, db)
+    w = (c**2).sum(-1)
+    t = ob - oa
+    # Closest points oa + ta * da and ob + tb * db (Cramer's rule), clamped in front.
+    ta = (np.cross(t, db) * c).sum(-1) / (w + 1e-10)
+    tb = (np.cross(t, da) * c).sum(-1) / (w + 1e-10)
+    mid = 0.5 * (oa + np.maximum(ta, 0.0)[..., None] * da + ob + np.maximum(tb, 0.0)[..., None] * db)
+    w = np.where(w > _MIN_AXIS_WEIGHT, w, 0.0)
+    if w.sum() <= 0:
+        return o.mean(axis=0)
+    return (mid * w[..., None]).sum(axis=(0, 1)) / w.sum()
+
+
+def fixed_cube_box(
+    frames: Sequence[Frame], bound: float = 4.0, camera_distance: float = 1.32
+) -> SceneBox:
+    """The paper's fixed cube as the official code sets it up: the poses centred on the point
+    the cameras look at (:func:`attention_point`) and scaled so that the cameras average
+    ``camera_distance`` units from it (Instant-NGP's 4 units times torch-ngp's scale 0.33),
+    the grid spanning ``[-bound, bound]^3`` of those units (bound 4). In metres: a cube
+    centred on that point, ``2 * bound * mean distance / camera_distance`` wide. The depth is
+    not read: what lies outside the cube is outside the field, as in the official code.
+    Our boxes are axis-aligned in the world frame; the official data loader's re-orientation
+    of the poses is not applied."""
+    if not frames:
+        raise CSAInputError("scene", "no frames to normalise")
+    poses = np.stack([np.asarray(f.pose, dtype=np.float64) for f in frames])
+    if not np.all(np.isfinite(poses)):
+        raise CSAInputError("scene", "camera poses must be finite")
+    centre = attention_point(poses)
+    mean_distance = float(np.linalg.norm(poses[:, :3, 3] - centre, axis=1).mean())
+    if not mean_distance > 1e-6:
+        raise CSAInputError(
+            "normalization",
+            "the fixed cube is scaled by the cameras' mean distance from the point they look at, "
+            "which is 0 here (one camera, or all at one spot): use normalization=box",
+        )
+    extent = 2.0 * bound * mean_distance / camera_distance
+    return SceneBox((float(centre[0]), float(centre[1]), float(centre[2])), extent)
+
+
+def fitted_box(
+    frames: Sequence[Frame], intrinsics: Intrinsics, config: NerfConfig
+) -> SceneBox:
+    """The box a fit of ``config`` normalises ``frames`` into: the scene's box
+    (:func:`scene_box_from_frames`) or the paper's fixed cube (:func:`fixed_cube_box`), as
+    ``config.normalization`` says."""
+    if config.normalization == "cube":
+        return fixed_cube_box(frames, config.cube_bound, config.cube_camera_distance)
+    return scene_box_from_frames(frames, intrinsics, seed=config.seed)

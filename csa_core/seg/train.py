@@ -41,14 +41,21 @@ log = logging.getLogger(__name__)
 BATCH_PROGRESS_EVERY = 10
 
 
-def lr_factor(schedule: str, step: int, total_steps: int, poly_power: float = 0.9) -> float:
-    """Multiplier of the initial learning rate at ``step`` of ``total_steps``."""
+def lr_factor(
+    schedule: str, step: int, total_steps: int, poly_power: float = 0.9, final: float = 0.0
+) -> float:
+    """Multiplier of the initial learning rate at ``step`` of ``total_steps``: a decaying
+    schedule goes from 1 to ``final`` (the final rate as a fraction of the first)."""
     t = min(step / max(total_steps, 1), 1.0)
     if schedule == "poly":
-        return (1.0 - t) ** poly_power
-    if schedule == "cosine":
-        return 0.5 * (1.0 + math.cos(math.pi * t))
-    return 1.0
+        decay = (1.0 - t) ** poly_power
+    elif schedule == "linear":
+        decay = 1.0 - t
+    elif schedule == "cosine":
+        decay = 0.5 * (1.0 + math.cos(math.pi * t))
+    else:
+        return 1.0
+    return final + (1.0 - final) * decay
 
 
 class SegmentationTrainer:
@@ -65,7 +72,13 @@ class SegmentationTrainer:
         )
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
             self.optimizer,
-            lambda s: lr_factor(config.schedule, s, self.total_steps, config.poly_power),
+            lambda s: lr_factor(
+                config.schedule,
+                s,
+                self.total_steps,
+                config.poly_power,
+                config.final_lr / config.lr,
+            ),
         )
         self.steps_done = 0
         self.images_seen = 0

@@ -21,6 +21,7 @@ from csa_core.adapt.pseudo_labels import nerf_config
 from csa_core.data.scene import Scene
 from csa_core.nerf.fit import fit_semantic_nerf
 from csa_core.nerf.hash_encoding import level_resolutions
+from csa_core.nerf.normalization import fixed_cube_box, scene_box_from_frames
 from csa_core.nerf.trainer import NerfTrainer
 from csa_core.seg.train import SegmentationTrainer
 
@@ -72,13 +73,19 @@ def test_the_nerf_is_the_papers():
     assert (f.hidden_dim, f.density_hidden_layers, f.geo_features) == (64, 1, 15)
     assert (f.color_hidden_layers, f.semantic_hidden_layers, f.sh_degree) == (2, 1, 4)
     assert f.semantic_grid_levels == 0  # no semantic feature table (ours)
-    assert f.semantic_detach_geometry is False  # the official head: features undetached
+    assert f.semantic_detach_geometry is True  # the paper's stop-gradient before geometry
+    # The official code's fixed cube: the grid spans [-4, 4]^3 of a scene scaled so that the
+    # cameras average 1.32 units from the point they look at.
+    assert (cfg.normalization, cfg.cube_bound, cfg.cube_camera_distance) == ("cube", 4.0, 1.32)
     loss = cfg.loss
     assert (loss.color, loss.depth, loss.semantic, loss.free_space) == (1.0, 0.1, 0.04, 0.0)
     assert (cfg.storage_dtype, cfg.appearance) == ("float32", "none")
 
     # The model and the optimiser built from it.
     nerf, _ = fit_semantic_nerf(scene, None, cfg, device="cpu", steps=0, progress=False)
+    assert nerf.box == fixed_cube_box(scene.train_frames, 4.0, 1.32) != scene_box_from_frames(
+        scene.train_frames, scene.intrinsics
+    )
     assert nerf.field.semantic_table is None
     linear = [m for m in nerf.field.semantic_mlp if isinstance(m, nn.Linear)]
     assert [m.in_features for m in linear] == [15, 64]  # geometry features, one hidden layer
@@ -117,6 +124,7 @@ def test_the_network_and_its_training_are_the_papers(pretrained):
     # Replay: 100 pairs, 10% of the pre-training data, batches of 2 current-or-buffer + 2
     # pre-training images, as the sampler the training loop uses draws them.
     assert (config.replay.buffer_size, config.replay.pretrain_fraction) == (100, 0.1)
+    assert (config.replay.views, config.replay.draw) == ("train", "random")
     batches = list(tuner.batches(primary=7, secondary=20))
     assert [sum(i >= 7 for i in b) for b in batches] == [2, 2, 2, 2]
     assert [sum(i < 7 for i in b) for b in batches] == [2, 2, 2, 1]  # one pass over the 7
@@ -125,6 +133,20 @@ def test_the_network_and_its_training_are_the_papers(pretrained):
     pre = pretrain_config(args)
     assert (pre.arch, pre.size) == ("deeplabv3_resnet101", (320, 240))
     assert (pre.train.lr, pre.train.batch_size, pre.train.epochs) == (1e-4, 4, 150)
+    # The rate decays linearly from 1e-4 to 1e-6, as the trainer's scheduler runs it.
+    assert (pre.train.schedule, pre.train.final_lr) == ("linear", 1e-6)
+    trainer = SegmentationTrainer(nn.Conv2d(3, 2, 1), pre.train, total_steps=10)
+    rates = []
+    for _ in range(11):
+        rates.append(trainer.lr)
+        trainer.optimizer.step()
+        trainer.scheduler.step()
+    expected = [1e-4 - (1e-4 - 1e-6) * k / 10 for k in range(11)]
+    assert rates == pytest.approx(expected, rel=1e-9)
+    official = build_parser().parse_args(
+        ["seg", "pretrain", "x", "--out", "y", "--preset", "paper", "--schedule", "poly"]
+    )
+    assert pretrain_config(official).train.final_lr == 1e-6  # the official config's decay
     net = build_model(pre.arch)  # torchvision, weights=None: nothing downloaded
     blocks = [len(getattr(net.net.backbone, f"layer{k}")) for k in range(1, 5)]
     assert blocks == [3, 4, 23, 3]  # ResNet-101
@@ -253,3 +275,35 @@ def test_adabn_runs_only_after_training_on_rendered_images(mode):
     ours = with_mode(paper(), mode)
     ours.adabn_placement = "ours"
     assert ours.adabn_before_labels and ours.adabn_after_training(rendered=False)
+
+
+def test_adabn_skips_every_method_that_trains_on_camera_images(monkeypatch):
+    """The paper uses AdaBN only for networks trained on rendered images: under ``paper``
+    Mapping, CoTTA and fine-tuning end their steps without it; placed ``ours`` they get it
+    before labelling and at the end of the step."""
+    import csa_core.adapt.methods as methods
+
+    calls = []
+    monkeypatch.setattr(methods, "apply_adabn", lambda *a, **k: calls.append(a[0]))
+    scene = small_room()
+    for name in ("mapping", "cotta", "finetune"):
+        for placement, expected in (("paper", 0), ("ours", 2)):
+            config = with_mode(paper(), "joint")
+            config.adabn_placement = placement
+            method = methods.make_method(name, config)
+            calls.clear()
+            method._adabn(nn.BatchNorm2d(3), scene, None, before_labels=True)
+            method._adabn(nn.BatchNorm2d(3), scene, None)
+            assert len(calls) == expected, (name, placement)
+
+
+def test_paper_official_takes_the_official_code_side():
+    from csa_core.adapt.config import paper_official, preset
+
+    official, ours = paper_official(), paper()
+    assert preset("paper-official") == official and official.preset == "paper-official"
+    assert official.nerf.semantic_detach_geometry is False  # the semantic loss reaches geometry
+    assert official.adabn is False  # the official code has no AdaBN step
+    official.preset, official.adabn = ours.preset, ours.adabn
+    official.nerf.semantic_detach_geometry = True
+    assert official == ours  # nothing else differs

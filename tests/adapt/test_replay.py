@@ -13,6 +13,7 @@ from csa_core.adapt.replay import (
     PretrainReplay,
     ReplayBuffer,
     evenly_spaced,
+    random_views,
     split_buffer,
 )
 from csa_core.nerf.fit import fit_semantic_nerf
@@ -116,3 +117,40 @@ def test_replay_buffer_at_novel_views_renders_between_training_frames(bank):
     assert not any(np.array_equal(a, b) for a, b in zip(novel.images, train.images, strict=True))
     with pytest.raises(ValueError):
         ReplayBuffer.from_memory_bank(bank, size=6, views="val")
+
+
+def test_paper_split_drops_the_remainder():
+    assert split_buffer(100, 3, remainder=False) == [33, 33, 33]
+    assert split_buffer(2, 3, remainder=False) == [0, 0, 0]
+    assert split_buffer(100, 4, remainder=False) == split_buffer(100, 4)
+
+
+def test_random_views_are_drawn_without_replacement_then_repeat():
+    rng = np.random.default_rng(0)
+    picks = random_views(6, 4, rng)
+    assert len(set(picks)) == 4 and all(0 <= k < 6 for k in picks)
+    many = random_views(6, 14, np.random.default_rng(1))
+    assert sorted(many[:6]) == sorted(many[6:12]) == list(range(6)) and len(many) == 14
+    assert random_views(0, 3, rng) == [] and random_views(5, 0, rng) == []
+
+
+def test_replay_buffer_draws_the_papers_random_views(bank):
+    """``draw="random"``: floor(size / n) views of every scene at random, seeded; each step
+    (number of earlier scenes) draws anew."""
+    a = ReplayBuffer.from_memory_bank(bank, size=10, views="train", draw="random", seed=3)
+    again = ReplayBuffer.from_memory_bank(bank, size=10, views="train", draw="random", seed=3)
+    assert a.per_scene() == {"room 0": 3, "room 1": 3, "room 2": 3}  # 9: no remainder
+    assert a.names == again.names  # deterministic
+    assert all(np.array_equal(x, y) for x, y in zip(a.images, again.images, strict=True))
+    assert len(set(a.names)) == 9
+    draws = {
+        tuple(ReplayBuffer.from_memory_bank(bank, size=3, draw="random", seed=s).names)
+        for s in range(4)
+    }
+    assert len(draws) > 1  # the seed picks the views
+    two = ReplayBuffer.from_memory_bank(
+        bank, size=10, scenes=["room 0", "room 1"], draw="random", seed=3
+    )
+    assert two.per_scene() == {"room 0": 5, "room 1": 5}
+    with pytest.raises(ValueError, match="draw"):
+        ReplayBuffer.from_memory_bank(bank, size=6, draw="spread")

@@ -127,7 +127,8 @@ def test_spherical_harmonics_shapes_and_constant_term():
 
 
 def test_the_official_semantic_head_lets_the_semantic_loss_reach_the_geometry_features():
-    """``semantic_detach_geometry=False`` (the paper preset): the semantic loss reaches the
+    """``semantic_detach_geometry=False`` (the official code's; the ``paper-official``
+    preset): the semantic loss reaches the
     density MLP and the hash table through the features, never the colour head; the
     rendering weights stay detached (only the features carry it)."""
     enc = HashEncodingConfig(
