@@ -116,6 +116,13 @@ def task_device(configured: str, num_gpus: float) -> str:
     return configured if num_gpus >= 1 else "cpu"
 
 
+def lost_worker_reason(error: BaseException) -> str:
+    """Why an attempt was lost with its worker, for the job's status line and log: Ray's error
+    type and the whole sentences of its message that fit in 300 characters (its messages run
+    to several sentences of advice; the first says what happened)."""
+    return f"its Ray worker was lost ({type(error).__name__}: {queue.brief(str(error), 300)})"
+
+
 class RayExecutor(Executor):
     mode = "ray"
 
@@ -338,8 +345,7 @@ class RayExecutor(Executor):
         except RayError as e:
             if a.lost:
                 return
-            first = (str(e).strip().splitlines() or [""])[0][:300]
-            reason = f"its Ray worker was lost ({type(e).__name__}: {first})"
+            reason = lost_worker_reason(e)
             status = queue.attempt_lost(sessions, a.job_id, self.id, reason, self.settings.max_attempts)
             log.warning("job %s: %s -> %s", a.job_id, reason, status)
             return

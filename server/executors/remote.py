@@ -29,6 +29,7 @@ import logging
 import os
 import pickle
 import shutil
+import socket
 import tempfile
 import time
 from collections.abc import Callable
@@ -42,11 +43,14 @@ from server.artifacts import ArtifactStore
 from server.db.session import session_scope
 from server.executors.base import run_job_function
 from server.executors.bundle import open_snapshot
+from server.jobs import queue
 from server.jobs.context import JobContext, Register
 
 log = logging.getLogger(__name__)
 
 RUN, CANCEL, LOST = "run", "cancel", "lost"  # the channel's answers to a report
+TASK_FOLDER_PREFIX = "csa-job-"  # a task's folder on its node: csa-job-<job id>-<random>
+TASK_OWNER_FILE = "owner"  # in a task's folder: "<hostname> <pid>" of the process that made it
 CHANNEL_TIMEOUT_S = 60.0
 _FETCH_CHUNK = 64  # shipped files fetched from the object store at a time
 
@@ -249,12 +253,42 @@ def _unpack_files(store: ArtifactStore, files: dict[str, Any]) -> None:
             dest.write_bytes(data)
 
 
+def task_folder(job_id: int, parent: Path | None = None) -> Path:
+    """A new folder for one attempt of a job (``csa-job-<id>-...`` in the node's temporary
+    folder), with a file naming its host and process, so that a later task can tell when the
+    attempt was killed (:func:`remove_dead_task_folders`)."""
+    root = Path(tempfile.mkdtemp(prefix=f"{TASK_FOLDER_PREFIX}{job_id}-", dir=parent))
+    (root / TASK_OWNER_FILE).write_text(f"{socket.gethostname()} {os.getpid()}\n")
+    return root
+
+
+def remove_dead_task_folders(parent: Path | None = None) -> list[Path]:
+    """Delete the task folders under ``parent`` (the temporary folder) whose process, on this
+    host, no longer exists: those of attempts killed with their worker process or node, which
+    never reached their own clean-up. Folders of other hosts (a shared disk) and of live
+    processes are left alone; returns the folders removed."""
+    parent = Path(parent or tempfile.gettempdir())
+    removed = []
+    for folder in parent.glob(f"{TASK_FOLDER_PREFIX}*"):
+        try:
+            host, pid = (folder / TASK_OWNER_FILE).read_text().split()
+            dead = host == socket.gethostname() and not queue.pid_alive(int(pid))
+        except (OSError, ValueError):
+            continue  # not a task folder, or one being made right now
+        if dead:
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+    return removed
+
+
 def run_job_task(spec: JobSpec, rows: dict[str, list[dict[str, Any]]], files: dict[str, Any], channel: Any) -> TaskOutcome:
     """The body of a Ray task: run one attempt of a job and hand back its outcome."""
     import ray
 
     node = ray.get_runtime_context().get_node_id()
-    root = Path(tempfile.mkdtemp(prefix=f"csa-job-{spec.job_id}-"))
+    for folder in remove_dead_task_folders():
+        log.warning("removed %s, the folder of a task whose process was killed", folder)
+    root = task_folder(spec.job_id)
     try:
         store = ArtifactStore(root / "inputs")
         ctx = RemoteJobContext(spec, root, store, open_snapshot(rows), channel)

@@ -17,11 +17,13 @@ from __future__ import annotations
 
 import datetime as dt
 import os
+import re
 import socket
 from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any
 
-from sqlalchemy import delete, select, update
+from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -42,6 +44,27 @@ def enqueue(session: Session, kind: str, params: dict[str, Any], lineage: str | 
     session.add(job)
     session.flush()
     return job
+
+
+def brief(text: str, limit: int) -> str:
+    """``text`` shortened to at most ``limit`` characters for a status line or a table cell:
+    its first line, as many whole sentences of it as fit, else cut at a word with an
+    ellipsis, so that nothing is cut off mid-sentence without saying so."""
+    line = next((ln.strip() for ln in text.splitlines() if ln.strip()), "")
+    if len(line) <= limit:
+        return line
+    sentences = re.split(r"(?<=[.!?])\s+", line)
+    kept = ""
+    for sentence in sentences:
+        candidate = f"{kept} {sentence}".strip()
+        if len(candidate) > limit:
+            break
+        kept = candidate
+    if kept:
+        return kept
+    cut = line[: limit - 1]
+    space = cut.rfind(" ")
+    return (cut[:space] if space > limit // 2 else cut).rstrip(" ,;:") + "…"
 
 
 def append_log(session: Session, job_id: int, message: str, level: str = "INFO") -> None:
@@ -77,7 +100,9 @@ def claim_next(factory: sessionmaker[Session], owner: str, lease_seconds: float,
                         status=RUNNING,
                         worker_id=owner,
                         attempts=Job.attempts + 1,
-                        started_at=now,
+                        # The first attempt's start: a retried job keeps it (each attempt's
+                        # start is in the log: "started on worker ... (attempt n)").
+                        started_at=func.coalesce(Job.started_at, now),
                         heartbeat_at=now,
                         lease_expires_at=now + dt.timedelta(seconds=lease_seconds),
                         progress=0.0,
@@ -265,14 +290,20 @@ def note_local_owner(owner: str, alive: bool) -> None:
     (_LOCAL_OWNERS.add if alive else _LOCAL_OWNERS.discard)(owner)
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether a process of this host with ``pid`` runs (one of another user counts; a zombie,
+    killed but not yet reaped by its parent, does not)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
-        return True
-    return True
+        pass
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True  # no /proc (not Linux): the signal said it exists
+    return stat.rpartition(")")[2].split()[:1] != ["Z"]
 
 
 def _owner_gone(w: Worker | None, owner: str | None) -> str | None:
@@ -283,7 +314,7 @@ def _owner_gone(w: Worker | None, owner: str | None) -> str | None:
         return f"{owner} stopped"
     if w.pid == os.getpid() and owner not in _LOCAL_OWNERS:
         return f"{owner} (pid {w.pid}) no longer exists (this process restarted)"
-    if w.pid != os.getpid() and not _pid_alive(w.pid):
+    if w.pid != os.getpid() and not pid_alive(w.pid):
         return f"{owner} (pid {w.pid}) is gone"
     return None
 

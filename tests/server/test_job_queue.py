@@ -100,6 +100,25 @@ def test_expired_leases_are_requeued_then_failed_with_a_reason(services: Service
     assert any(m.startswith("re-queued after attempt 1 of 2") for m in messages)
 
 
+def test_a_job_lost_with_its_worker_keeps_its_first_start(services: Services) -> None:
+    """The second attempt of a job whose worker died: ``started_at`` stays the first start (the
+    log has each attempt's start), the status line says the whole reason."""
+    j = add_job(services)
+    first = queue.claim_next(services.sessions, "w1", 30, {TEST_KIND})
+    assert first is not None and first.started_at is not None
+    with session_scope(services.sessions) as s:  # an hour ago, so a reset cannot look equal
+        s.execute(update(Job).where(Job.id == j).values(started_at=first.started_at - dt.timedelta(hours=1)))
+    reason = "its Ray worker was lost (NodeDiedError: The node died. It was killed.)"
+    assert queue.attempt_lost(services.sessions, j, "w1", reason, max_attempts=2) == queue.QUEUED
+    assert job(services, j).message == f"re-queued after attempt 1 of 2: {reason}"
+    second = queue.claim_next(services.sessions, "w2", 30, {TEST_KIND})
+    assert second is not None and second.attempts == 2
+    assert second.started_at == first.started_at - dt.timedelta(hours=1)
+    with session_scope(services.sessions) as s:
+        starts = [m.message for m in s.query(JobLog).filter(JobLog.job_id == j).order_by(JobLog.id) if m.message.startswith("started")]
+    assert starts == ["started on worker w1 (attempt 1)", "started on worker w2 (attempt 2)"]
+
+
 def test_cancel_a_queued_job(services: Services) -> None:
     j = add_job(services)
     with session_scope(services.sessions) as s:

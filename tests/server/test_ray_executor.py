@@ -20,6 +20,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -309,6 +310,12 @@ def test_fits_in_parallel_survive_a_disruption_then_adapt(request, setup, rooms:
             assert "Error" in lost  # Ray's reason: NodeDiedError or WorkerCrashedError
             (first, second) = attempts_on_nodes(c, victim)
             assert first[0] != second[0] and (first[2], second[2]) == (1, 2)  # retried on the other node
+            # The killed attempt's task folder (both nodes share this machine's temporary
+            # folder) was removed by the next task here; the second attempt removed its own.
+            assert not list(Path(tempfile.gettempdir()).glob(f"csa-job-{victim}-*"))
+            # The job's start is its first attempt's (each attempt's start is in the log).
+            starts = [line.time for line in c.job_log(victim, tail=500) if line.message.startswith("started on worker")]
+            assert len(starts) == 2 and c.job(victim).started_at <= starts[0] < starts[1]
         else:
             assert c.job(victim).attempts == 1  # handed back at shutdown: the attempt does not count
             assert any(m == "re-queued: executor shutting down" for m in lines)
@@ -462,3 +469,52 @@ def test_a_registration_travels_with_its_files_and_runs_against_the_api_store(tm
     assert api_store.path_of(sha).read_bytes() == b"weights" * 100 and [r.sha256 for r in session.rows] == [sha]
     with pytest.raises(ValueError, match="stay inside the task folder"):
         restore_registration(TaskOutcome("succeeded", None, "node", blob, {"../escape": b"x"}), folder, context)
+
+
+def test_a_lost_workers_reason_keeps_whole_sentences() -> None:
+    """The status line of a job re-queued after its node died says what Ray said, in whole
+    sentences (Ray's message runs to several sentences of advice)."""
+    from ray.exceptions import NodeDiedError
+
+    from server.executors.ray_cluster import lost_worker_reason
+
+    message = (
+        "Task failed due to the node (where this task was running) dying. The node (IP: 127.0.0.2, node ID: "
+        + "ab" * 28
+        + ") has been marked dead because the detector has missed too many heartbeats from it. "
+        "This can happen when a (1) raylet crashes unexpectedly (OOM, etc.) (2) raylet has lagging heartbeats."
+    )
+    reason = lost_worker_reason(NodeDiedError(message))
+    assert reason.startswith("its Ray worker was lost (NodeDiedError: Task failed due to the node")
+    assert reason.endswith("missed too many heartbeats from it.)") and len(reason) < 360
+    assert queue.brief(message, 70) == "Task failed due to the node (where this task was running) dying."
+    cut = queue.brief("x " * 20 + "y" * 100, 50)  # no sentence fits: cut at a word, and say so
+    assert len(cut) <= 50 and cut.endswith("…") and not cut.endswith(" …")
+    assert queue.brief("first line\nsecond line", 100) == "first line" and queue.brief("", 10) == ""
+
+
+def test_folders_of_killed_tasks_are_removed_by_the_next_task(tmp_path: Path) -> None:
+    """A task's folder on its node outlives a killed worker process (its clean-up never ran);
+    the next task on the node removes it, and never a folder of a live process or another host."""
+    from server.executors.remote import TASK_OWNER_FILE, remove_dead_task_folders, task_folder
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    killed = task_folder(7, tmp_path)
+    (killed / TASK_OWNER_FILE).write_text(f"{socket.gethostname()} {dead.pid}\n")
+    # Killed, not yet reaped by its parent (a worker whose raylet was killed with it).
+    zombie = subprocess.Popen([sys.executable, "-c", "pass"])
+    wait_for(lambda: Path(f"/proc/{zombie.pid}/stat").read_text().rpartition(")")[2].split()[0] == "Z", 30, "a zombie")
+    unreaped = task_folder(6, tmp_path)
+    (unreaped / TASK_OWNER_FILE).write_text(f"{socket.gethostname()} {zombie.pid}\n")
+    (killed / "inputs").mkdir()
+    (killed / "inputs" / "blob").write_bytes(b"x" * 1000)
+    running = task_folder(8, tmp_path)  # this process's: alive
+    elsewhere = task_folder(9, tmp_path)
+    (elsewhere / TASK_OWNER_FILE).write_text(f"another-host-{socket.gethostname()} {dead.pid}\n")
+    unrelated = tmp_path / "csa-job-notes"
+    unrelated.mkdir()
+    assert sorted(remove_dead_task_folders(tmp_path)) == sorted([killed, unreaped])
+    zombie.wait()
+    assert not killed.exists() and not unreaped.exists()
+    assert running.is_dir() and elsewhere.is_dir() and unrelated.is_dir()
