@@ -437,8 +437,8 @@ def nerf_row(
     return row
 
 
-# The march of a view without depth before "A cheaper march for novel views"
-# (benchmarks/RESULTS.md): the grid's own step, stopped at transmittance 1/1000, samples of
+# The march of a view without depth before benchmarks/results/speed.md "A cheaper march for
+# novel views": the grid's own step, stopped at transmittance 1/1000, samples of
 # weight 1/10000 kept.
 FINE_MARCH = [
     ("sampler", "render_march_steps", None),

@@ -3,9 +3,14 @@ that exist, so comments cannot drift away from ``docs/`` silently."""
 
 from __future__ import annotations
 
+import argparse
 import ast
 import re
+import shlex
+from collections.abc import Iterator
 from pathlib import Path
+
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 DOCS = REPO / "docs"
@@ -54,26 +59,64 @@ def test_every_cited_page_and_section_exists():
     assert missing == []
 
 
-# benchmarks/RESULTS.md "A" or RESULTS "A", "B": a section is cited by the start of its heading
-RESULTS_CITATION = re.compile(r'(?:benchmarks/RESULTS\.md|RESULTS)`?[,\s(]*((?:"[^"\n]+"(?:\s*,\s*|\s+and\s+)?)*)')
+# benchmarks/RESULTS.md "A", benchmarks/results/<page>.md "A", "B" (or the short RESULTS "A"): a
+# section is cited by the start of its heading
+RESULTS_CITATION = re.compile(
+    r'(benchmarks/RESULTS\.md|benchmarks/results/[\w-]+\.md|\bRESULTS\b)`?[,\s(]*((?:"[^"\n]+"(?:\s*,\s*|\s+and\s+)?)*)'
+)
+
+
+def results_citations(text: str) -> list[tuple[str, list[str]]]:
+    """(page relative to the repository, [sections]) of every citation of the measurements."""
+    found = []
+    for page, quoted in RESULTS_CITATION.findall(text):
+        page = "benchmarks/RESULTS.md" if page == "RESULTS" else page
+        found.append((page, re.findall(r'"([^"]+)"', quoted)))
+    return found
+
+
+def test_results_citations_are_parsed_with_their_page():
+    text = (
+        'see benchmarks/results/fusion.md "Far depth outliers", "Flying pixels" and '
+        'RESULTS "Targets"; `benchmarks/results/speed.md` ("A cheaper march")'
+    )
+    assert results_citations(text) == [
+        ("benchmarks/results/fusion.md", ["Far depth outliers", "Flying pixels"]),
+        ("benchmarks/RESULTS.md", ["Targets"]),
+        ("benchmarks/results/speed.md", ["A cheaper march"]),
+    ]
 
 
 def test_every_cited_results_section_exists():
-    """Citations of ``benchmarks/RESULTS.md`` sections (by the start of the heading, quotes in
-    a heading left out) point at a heading that exists."""
-    heads = {h.replace('"', "") for h in headings(REPO / "benchmarks" / "RESULTS.md")}
+    """Citations of the index ``benchmarks/RESULTS.md`` and of its pages under
+    ``benchmarks/results/`` (by the start of the heading, quotes in a heading left out) point
+    at a page and a heading that exist."""
     files = [REPO / "README.md"]
     for top in SCANNED:
         files += [p for p in (REPO / top).rglob("*") if p.suffix in (".py", ".md")]
     cited, missing = 0, []
     for path in files:
-        for quoted in RESULTS_CITATION.findall(path.read_text(errors="replace")):
-            for section in re.findall(r'"([^"]+)"', quoted):
+        if path == Path(__file__).resolve():
+            continue  # this file's examples
+        for page, sections in results_citations(path.read_text(errors="replace")):
+            target = REPO / page
+            if not target.is_file():
+                missing.append(f"{path.relative_to(REPO)}: {page} does not exist")
+                continue
+            heads = {h.replace('"', "") for h in headings(target)}
+            for section in sections:
                 cited += 1
                 if not any(h.startswith(section) for h in heads):
-                    missing.append(f"{path.relative_to(REPO)}: benchmarks/RESULTS.md has no section {section!r}")
+                    missing.append(f"{path.relative_to(REPO)}: {page} has no section {section!r}")
     assert cited >= 50  # the code and the docs do cite the measurements
     assert missing == []
+
+
+def test_results_pages_are_listed_in_the_index():
+    index = (REPO / "benchmarks" / "RESULTS.md").read_text()
+    pages = sorted((REPO / "benchmarks" / "results").glob("*.md"))
+    assert pages
+    assert [p.name for p in pages if f"(results/{p.name})" not in index] == []
 
 
 def test_no_code_cites_the_old_design_notes():
@@ -136,3 +179,62 @@ def test_code_named_in_the_docs_exists():
         stale += [f"{page.name}: `{n}`" for n in sorted(set(CODE_NAME.findall(text))) if not resolves(n)]
         stale += [f"{page.name}: {p}" for p in sorted(set(CODE_PATH.findall(text))) if not (REPO / p).is_file()]
     assert stale == []
+
+
+# A line of a fenced code block that runs `csa` or `csa-client`, after any VAR=value prefixes.
+COMMAND_LINE = re.compile(r"^(?:[A-Za-z_]\w*=\S*\s+)*(csa|csa-client)(?:\s|$)")
+FENCE = re.compile(r"^```[^\n]*\n(.*?)^```", re.MULTILINE | re.DOTALL)
+
+
+def quoted_commands(text: str) -> Iterator[tuple[str, list[str]]]:
+    """(program, arguments) of every `csa ...` or `csa-client ...` line in the fenced code
+    blocks of ``text``: continuation lines joined, comments and VAR=value prefixes dropped."""
+    for block in FENCE.findall(text):
+        for line in re.sub(r"\\\n\s*", " ", block).splitlines():
+            line = line.strip()
+            if not COMMAND_LINE.match(line):
+                continue
+            words = shlex.split(line, comments=True)
+            while re.match(r"^[A-Za-z_]\w*=", words[0]):
+                words.pop(0)
+            yield words[0], words[1:]
+
+
+def test_quoted_commands_are_found():
+    text = (
+        "```bash\nexport CSA_URL=x\ncsa data synth runs/r --seed 0   # rooms\n"
+        "CSA_EXECUTOR=ray csa-client jobs 3 \\\n    --log\nray start --head\n```\n"
+        "outside a block: csa nerf fit x\n"
+    )
+    assert list(quoted_commands(text)) == [
+        ("csa", ["data", "synth", "runs/r", "--seed", "0"]),
+        ("csa-client", ["jobs", "3", "--log"]),
+    ]
+
+
+def parsers() -> dict[str, argparse.ArgumentParser]:
+    """The real parsers of both commands, built without running anything."""
+    from client.cli import build_parser as client_parser
+    from csa_core.cli.main import build_parser as csa_parser
+
+    return {"csa": csa_parser(), "csa-client": client_parser()}
+
+
+def test_every_quoted_command_parses(capsys):
+    """Every `csa ...` and `csa-client ...` command shown in a code block of the README and
+    of docs/ is accepted by the command's own argument parser, so a reader who copies one
+    does not meet an unknown command or flag."""
+    pytest.importorskip("fastapi")  # `csa serve` comes from the server package
+    programs = parsers()
+    pages = [REPO / "README.md", *sorted(DOCS.glob("*.md"))]
+    checked, refused = 0, []
+    for page in pages:
+        for program, args in quoted_commands(page.read_text()):
+            checked += 1
+            try:
+                programs[program].parse_args(args)
+            except SystemExit:
+                error = capsys.readouterr().err.strip().splitlines()[-1:]
+                refused.append(f"{page.relative_to(REPO)}: {program} {' '.join(args)}: {error}")
+    assert checked >= 40  # the README and the docs do show commands
+    assert refused == []

@@ -269,8 +269,9 @@ def test_a_semantic_head_trained_after_the_fit_needs_semantic_steps():
 def test_the_augmentation_is_set_field_by_field_and_checked():
     """``seg.augment`` is a section like any other: the official code's augmentation (the
     ``paper`` preset's) is four ``--set`` items away from ours (the ``tiny`` preset's, and
-    ``cpu``'s until it dropped augmentation: benchmarks/RESULTS.md "Deviations measured with
-    the multi-step experiment, second set"), and a bad strength is refused with the item named."""
+    ``cpu``'s until it dropped augmentation: benchmarks/results/continual.md "Deviations
+    measured with the multi-step experiment, second set"), and a bad strength is refused with
+    the item named."""
     from csa_core.seg.config import official_augment
 
     official = [

@@ -190,7 +190,7 @@ def _print_summary(console, result, adabn: list[float], seed: int) -> list[dict]
         f"This is one run (seed {seed}): "
         "a single run moves by several points with the seed and the machine's floating-point paths, "
         "so its ordering is not a result. Over seeds: csa experiment multi-step --seeds 0,1,2 "
-        "(README.md and benchmarks/RESULTS.md report it as mean +- std)."
+        "(README.md and benchmarks/results/continual.md report it as mean +- std)."
     )
     return rows
 

@@ -3,7 +3,7 @@
 A pixel beside a jump in depth is missing on a structured-light sensor (the Kinect-like
 capture of :mod:`csa_core.data.synth.kinect` makes holes there) and reads a depth between the
 two surfaces on a time-of-flight one (flying pixels, ``mix_depth_edges`` there; the fusion
-benchmark's ``flying`` variant, benchmarks/RESULTS.md "Flying pixels at depth edges").
+benchmark's ``flying`` variant, benchmarks/results/fusion.md "Flying pixels at depth edges").
 """
 
 from __future__ import annotations

@@ -47,7 +47,8 @@ class ColorCamera:
 
 # Estimated on 7-Scenes "red kitchen" (100 frames, 320x240) with ``estimate_color_camera``
 # started from the usual Kinect v1 colour defaults (fx = fy = 525, centre 320, 240, 2.5 cm
-# baseline): multi-view colour RMS 24.9 (depth camera) -> 16.6 (8-bit), benchmarks/RESULTS.md.
+# baseline): multi-view colour RMS 24.9 (depth camera) -> 16.6 (8-bit),
+# benchmarks/results/components.md "7-Scenes red kitchen".
 # In 640x480 pixels, pixel-edge convention of ``Intrinsics``.
 KINECT_V1_COLOR = ColorCamera(Intrinsics(523.0, 523.0, 319.5, 235.0, 640, 480), (0.025, 0.0, 0.0))
 

@@ -10,8 +10,9 @@ colour camera, a few centimetres to the side with a wider view. By default (``ca
 the importer moves every frame to the colour camera (:mod:`csa_core.data.registration`):
 colour-camera poses and intrinsics, depth splatted into the colour image at full resolution
 before resizing. Then a pixel's colour, depth and pose agree, which the NeRF needs (held-out
-PSNR 20.6 dB instead of 14.4 dB on the red kitchen, benchmarks/RESULTS.md). ``camera="depth"``
-keeps the raw depth-camera frames, colour read as if the depth camera had taken it.
+PSNR 20.6 dB instead of 14.4 dB on the red kitchen, benchmarks/results/components.md
+"7-Scenes red kitchen"). ``camera="depth"`` keeps the raw depth-camera frames, colour read as
+if the depth camera had taken it.
 """
 
 from __future__ import annotations

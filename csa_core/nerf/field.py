@@ -70,7 +70,7 @@ def _mlp(in_dim: int, hidden: int, layers: int, out_dim: int) -> nn.Sequential:
     for _ in range(layers):
         # In place: a linear layer's backward needs its input, not its output, so autograd
         # allows it, and it saves a pass over every hidden activation (MLP forward -17% when
-        # rendering: benchmarks/RESULTS.md, "Fewer band samples and one corner layout").
+        # rendering: benchmarks/results/speed.md, "Fewer band samples and one corner layout").
         mods += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
         d = hidden
     mods.append(nn.Linear(d, out_dim))

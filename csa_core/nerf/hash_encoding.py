@@ -155,7 +155,7 @@ class HashEncoding(nn.Module):
         dimension of N samples (several times faster on CPU than a trailing corner dimension)
         and the dense and hashed level groups join by plain concatenation. One transposition
         at the end gives the bag layout, which every table then reads without copying
-        (benchmarks/RESULTS.md, "Fewer band samples and one corner layout").
+        (benchmarks/results/speed.md, "Fewer band samples and one corner layout").
         """
         levels = self.cfg.num_levels if levels is None else min(levels, self.cfg.num_levels)
         res = self.resolutions[:levels].view(-1, 1, 1)

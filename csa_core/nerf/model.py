@@ -375,7 +375,7 @@ class SemanticNerf(nn.Module):
             sampler = self.make_sampler(sampler)
         chunk = chunk or self.config.render_chunk
         # A pruned march evaluates the field at every sample it keeps: keep the features too
-        # (benchmarks/RESULTS.md "A cheaper march for novel views").
+        # (benchmarks/results/speed.md "A cheaper march for novel views").
         march_fn = (
             self._march_features(semantics)
             if isinstance(sampler, OccupancySampler) and sampler.prune

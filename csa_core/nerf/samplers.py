@@ -316,7 +316,7 @@ class OccupancyGrid(nn.Module):
         density_fn: DensityFn | FeatureDensityFn | None = None,
         early_stop_eps: float = 1e-3,
         min_weight: float = 1e-4,
-        chunk_steps: int = 16,  # benchmarks/RESULTS.md "A cheaper march for novel views": 16 beat 48
+        chunk_steps: int = 16,  # benchmarks/results/speed.md "A cheaper march": 16 beat 48
         step: float | None = None,
     ) -> RaySamples:
         """March every ray from ``t_near`` to ``t_far`` in steps of ``step`` metres along the ray
@@ -476,7 +476,8 @@ class GridSurfaceEstimate:
         box: SceneBox,
         step_cells: float = 0.5,
         min_opacity: float = 0.5,
-        chunk_steps: int = 8,  # benchmarks/RESULTS.md, "Semantic steps in depth holes": 8 beat 16 and 4
+        # benchmarks/results/speed.md "Semantic steps in depth holes": 8 beat 16 and 4
+        chunk_steps: int = 8,
     ):
         if not step_cells > 0 or not 0 < min_opacity < 1:
             raise ValueError(

@@ -200,10 +200,10 @@ class NerfTrainer:
         # Rays in depth holes sample the way their labels render: in the band around the
         # occupancy grid's surface estimate where the config's ``render_hole_estimate`` is on
         # (marching them cost hard scenes 2-3x the clean scenes' semantic steps:
-        # benchmarks/RESULTS.md, "Semantic steps in depth holes").
+        # benchmarks/results/speed.md, "Semantic steps in depth holes").
         # As many band samples as the fit's steps, not the render's: with the render's 6
         # (``fast``) the hard variants' labels came out 0.2-0.7 lower, rendering 6 from a head
-        # trained on 8 cost at most 0.2 (benchmarks/RESULTS.md, "Fewer band samples and one
+        # trained on 8 cost at most 0.2 (benchmarks/results/speed.md, "Fewer band samples and one
         # corner layout").
         sampler = nerf.render_sampler(
             with_depth=self.rays.has_depth, band_samples=nerf.config.sampler.band_samples

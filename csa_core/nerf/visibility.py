@@ -4,7 +4,7 @@ The voxel map (``csa_core/adapt/baselines/voxel_map.py``) answers "unknown" wher
 view measured a surface; a NeRF answers everywhere, and on a surface no training view saw
 its answer is a guess (the field's labels there come from whatever lies near). Scored by
 mIoU, a wrong guess is a false positive of some class while "unknown" is only a miss, so a
-fuser that guesses is penalised twice where the map abstains (benchmarks/RESULTS.md
+fuser that guesses is penalised twice where the map abstains (benchmarks/results/fusion.md
 "Unseen surfaces: cells the training depth measured").
 
 :class:`ObservedCells` marks the cells of the box that contain a training view's measured
@@ -14,8 +14,8 @@ its surface point falls in no marked cell (``csa_core/nerf/render.py``, ``seen_s
 Unlike the training cameras' frusta (the test of models without cells, the default), it
 knows occlusion: the back of a cabinet inside every frustum is unseen if no view measured
 it. Built only with ``NerfConfig.observed_resolution`` > 0: on the fusion benchmark it was no
-better than the frusta (benchmarks/RESULTS.md "Unseen surfaces: cells the training depth
-measured").
+better than the frusta (benchmarks/results/fusion.md "Unseen surfaces: cells the training
+depth measured").
 """
 
 from __future__ import annotations

@@ -231,7 +231,7 @@ def test_progress_stream_is_server_sent_events(uploaded: Service, pretrained) ->
     assert '"status":"succeeded"' in lines[lines.index("event: progress") + 1]
 
 
-@pytest.mark.skipif(not capabilities.available("adapt"), reason="adapt job pending issue 4 (csa_core.adapt not in this build)")
+@pytest.mark.skipif(not capabilities.available("adapt"), reason="the adapt job needs csa_core.adapt, not in this build")
 def test_adapt_is_a_continual_step(uploaded: Service, pretrained) -> None:
     """Last in this file: it adds a step to the lineage the tests above see without one."""
     c = uploaded.client
