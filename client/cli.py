@@ -17,7 +17,7 @@ from rich.table import Table
 
 from client.csa_client import CSAClient
 from client.errors import CSAError
-from client.models import Job
+from client.models import Job, MemoryBank
 
 console = Console()
 err_console = Console(stderr=True)
@@ -46,9 +46,9 @@ def _read_matrix(path: Path, shapes: tuple[tuple[int, int], ...]) -> list[list[f
 def _job_table(jobs: list[Job]) -> Table:
     t = Table()
     for col in ("id", "kind", "status", "progress", "message", "created"):
-        t.add_column(col)
+        t.add_column(col, max_width=70 if col == "message" else None, overflow="fold")
     for j in jobs:
-        t.add_row(str(j.id), j.kind, j.status, f"{100 * j.progress:.0f}%", (j.error or j.message)[:70], j.created_at.isoformat(timespec="seconds"))
+        t.add_row(str(j.id), j.kind, j.status, f"{100 * j.progress:.0f}%", j.error or j.message, j.created_at.isoformat(timespec="seconds"))
     return t
 
 
@@ -66,7 +66,14 @@ def _wait(client: CSAClient, job: Job, timeout: float | None) -> Job:
 
 def cmd_health(client: CSAClient, args: argparse.Namespace) -> int:
     h = client.health()
-    console.print_json(h.model_dump_json())
+    if args.json:
+        console.print_json(h.model_dump_json())
+        return 0 if h.status == "ok" else 1
+    console.print(f"status: {h.status}  version {h.version}  database {h.database}  workers alive {h.workers_alive}", markup=False, highlight=False)
+    console.print("capabilities:", markup=False, highlight=False)
+    for name, reason in sorted(h.capabilities.items()):
+        # The server reports null for an available capability, else why it is not.
+        console.print(f"  {name}: {'available' if reason is None else f'not available ({reason})'}", markup=False, highlight=False)
     return 0 if h.status == "ok" else 1
 
 
@@ -169,14 +176,47 @@ def cmd_metrics(client: CSAClient, args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_memory(client: CSAClient, args: argparse.Namespace) -> int:
-    bank = client.memory()
+def _quality_value(key: str, value: object) -> str:
+    """One number of a NeRF's quality, in the unit its name says (``*_psnr`` dB, ``*_m``
+    metres, ``*_seconds``, ``*miou*`` as a percentage)."""
+    if value is None:
+        return "-"
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return str(value)
+    if key.endswith("_psnr"):
+        return f"{value:.1f} dB"
+    if key.endswith("_m"):
+        return f"{value:.3f} m"
+    if key.endswith("_seconds"):
+        return f"{value:.1f} s"
+    if "miou" in key:
+        return f"{100 * value:.1f}%"
+    return str(value) if isinstance(value, int) else f"{value:.4g}"
+
+
+def quality_lines(quality: dict[str, object], skip: tuple[str, ...] = ("preset",)) -> list[str]:
+    """A NeRF's quality numbers as ``name value`` lines (``val_depth_mae_m`` -> ``val depth mae
+    0.051 m``), in the server's order; ``skip`` names keys shown elsewhere."""
+    lines = []
+    for key, value in quality.items():
+        if key in skip:
+            continue
+        name = key.removesuffix("_seconds").removesuffix("_m").replace("_", " ")
+        lines.append(f"{name} {_quality_value(key, value)}")
+    return lines
+
+
+def memory_table(bank: MemoryBank) -> Table:
     t = Table(title=f"memory bank: {bank.num_scenes} scenes, {bank.total_bytes / 1e6:.2f} MB")
     for col in ("scene", "nerf", "MB", "preset", "labels", "quality"):
-        t.add_column(col)
+        t.add_column(col, overflow="fold")
     for e in bank.entries:
-        t.add_row(e.scene, str(e.id), f"{e.size_bytes / 1e6:.2f}", e.preset, e.labels_source, json.dumps(e.quality))
-    console.print(t)
+        t.add_row(e.scene, str(e.id), f"{e.size_bytes / 1e6:.2f}", e.preset, e.labels_source, "\n".join(quality_lines(e.quality)) or "-")
+    return t
+
+
+def cmd_memory(client: CSAClient, args: argparse.Namespace) -> int:
+    console.print(memory_table(client.memory()))
     return 0
 
 
@@ -224,7 +264,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=30.0, help="seconds per request (default 30)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    sub.add_parser("health", help="server status and capabilities").set_defaults(func=cmd_health)
+    s = sub.add_parser("health", help="server status and capabilities")
+    s.add_argument("--json", action="store_true", help="print the server's answer as JSON")
+    s.set_defaults(func=cmd_health)
 
     s = sub.add_parser("upload", help="upload a scene folder (creates the scene; re-uploading is harmless)")
     s.add_argument("scene_dir", type=Path)
