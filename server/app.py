@@ -16,6 +16,7 @@ from fastapi import Depends, FastAPI
 from csa_core import __version__
 from server import ui
 from server.artifacts import OrphanSweeper
+from server.audit import AuditMiddleware
 from server.auth import require_api_key, resolve_api_keys
 from server.errors import install_error_handlers
 from server.executors import make_executor
@@ -23,6 +24,7 @@ from server.model_cache import ModelCache
 from server.nerf_cache import NerfCache
 from server.request_metrics import RequestMetricsMiddleware, RequestStats, RouteTemplates
 from server.routers import (
+    admin,
     continual,
     frames,
     health,
@@ -46,6 +48,9 @@ visits, fit a Semantic-NeRF per scene (the memory bank), adapt the segmentation 
 without labels, and serve inference and rendering.
 
 Every route but `/health` needs an API key: `X-API-Key: KEY` or `Authorization: Bearer KEY`.
+Keys carry a scope: `device` (its own scenes, their frames, predictions), `operator` (every
+scene, jobs, models, the memory bank, renders, metrics) or `admin` (everything, keys and the
+audit log); a key below a route's scope is answered 403 naming the scope needed.
 Errors are `{"error": {"code", "message", "field"}}`.
 """
 
@@ -57,7 +62,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         services = open_services(settings)
-        services.api_keys = resolve_api_keys(settings)
+        services.set_settings_keys(resolve_api_keys(settings), generated=not settings.api_keys)
         app.state.services = services
         device = None if settings.device == "auto" else settings.device
         app.state.model_cache = ModelCache(services.store, settings.model_cache_size, device)
@@ -91,6 +96,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.request_stats = stats
     install_error_handlers(app)
+    app.add_middleware(AuditMiddleware)
     app.add_middleware(BodyLimitMiddleware, settings=settings)
     templates = RouteTemplates(lambda: [*app.openapi()["paths"], "/docs", "/openapi.json"])
     app.add_middleware(RequestMetricsMiddleware, stats=stats, templates=templates)
@@ -98,7 +104,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(health.router)
     secured = [Depends(require_api_key)]
     app.include_router(prometheus.router, dependencies=secured)
-    for module in (scenes, frames, jobs, models, memory, continual, inference, rendering):
+    for module in (scenes, frames, jobs, models, memory, continual, inference, rendering, admin):
         app.include_router(module.router, prefix=API_PREFIX, dependencies=secured)
     app.include_router(ui.router)  # the dashboard at /ui: its own session auth (server/ui)
     return app

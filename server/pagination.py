@@ -89,18 +89,20 @@ def decode_cursor(cursor: str, types: Sequence[type]) -> list[int | str]:
     return values
 
 
-def page(db: Session, query: Select, pages: PageQuery, response: Response, keys: Sequence[InstrumentedAttribute]) -> list[Any]:
+def page(
+    db: Session, query: Select, pages: PageQuery, response: Response, keys: Sequence[InstrumentedAttribute], descending: bool = False
+) -> list[Any]:
     """The rows of ``pages`` from ``query``, which must order its rows by ``keys`` (ascending,
-    together unique, so that pages neither overlap nor skip); sets ``X-Total-Count`` on
-    ``response``, and a ``Link`` to the next page when this one is full."""
+    or descending with ``descending``; together unique, so that pages neither overlap nor skip);
+    sets ``X-Total-Count`` on ``response``, and a ``Link`` to the next page when this one is full."""
     total = db.scalar(select(func.count()).select_from(query.order_by(None).subquery()))
     response.headers[TOTAL_COUNT_HEADER] = str(total or 0)
     if pages.after is not None:
         values = decode_cursor(pages.after, [k.type.python_type for k in keys])
         if len(keys) == 1:
-            query = query.where(keys[0] > values[0])
+            query = query.where(keys[0] < values[0] if descending else keys[0] > values[0])
         else:
-            query = query.where(tuple_(*keys) > tuple_(*values))
+            query = query.where(tuple_(*keys) < tuple_(*values) if descending else tuple_(*keys) > tuple_(*values))
     rows = list(db.scalars(query.limit(pages.limit).offset(pages.offset)))
     if len(rows) == pages.limit:
         cursor = encode_cursor([getattr(rows[-1], k.key) for k in keys])

@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from server.artifacts import ArtifactStore
 from server.db.migrate import upgrade_to_head
 from server.db.session import make_engine, make_sessionmaker
+from server.keys import Principal, settings_principals
 from server.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -23,6 +24,12 @@ class Services:
     sessions: sessionmaker[Session]
     store: ArtifactStore
     api_keys: list[str] = field(default_factory=list)
+    key_principals: dict[str, Principal] = field(default_factory=dict)  # sha256 -> settings key (admin)
+
+    def set_settings_keys(self, keys: list[str], generated: bool) -> None:
+        """The settings' keys (``server/auth.py``), admin keys that live outside the database."""
+        self.api_keys = list(keys)
+        self.key_principals = settings_principals(self.api_keys, generated)
 
     def close(self) -> None:
         self.engine.dispose()

@@ -47,6 +47,40 @@ class Artifact(Base):
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
 
 
+class ApiKey(Base):
+    """An API key kept as data: only the sha256 of its secret is stored (docs/operations.md
+    "API keys"). Names stay unique after revocation, so the audit log's names stay unambiguous."""
+
+    __tablename__ = "api_keys"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(64), unique=True)
+    prefix: Mapped[str] = mapped_column(String(16), unique=True)  # shown in lists, never secret
+    secret_sha256: Mapped[str] = mapped_column(String(64), unique=True)
+    scope: Mapped[str] = mapped_column(String(16))  # device, operator or admin
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+    expires_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
+    last_used_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
+    revoked_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
+
+
+class AuditEntry(Base):
+    """One write request: who (key name and scope), what (method, route, ids), when and its
+    outcome (status code). Key names are copied, so entries outlive their keys."""
+
+    __tablename__ = "audit_log"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow, index=True)
+    key_name: Mapped[str] = mapped_column(String(64), index=True)
+    scope: Mapped[str] = mapped_column(String(16))
+    method: Mapped[str] = mapped_column(String(8))
+    route: Mapped[str] = mapped_column(String(255))  # the template: /api/v1/scenes/{scene_ref}
+    path: Mapped[str] = mapped_column(String(1024))
+    ids: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # path parameters, created id
+    status: Mapped[int] = mapped_column(Integer)
+
+
 class Scene(Base):
     __tablename__ = "scenes"
 
@@ -59,6 +93,10 @@ class Scene(Base):
     depth_width: Mapped[int | None] = mapped_column(Integer, nullable=True)
     depth_height: Mapped[int | None] = mapped_column(Integer, nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+    # The key that created the scene (docs/operations.md "Scopes"); NULL for the settings' keys.
+    owner_key_id: Mapped[int | None] = mapped_column(
+        ForeignKey("api_keys.id", ondelete="SET NULL"), nullable=True, index=True
+    )
 
     frames: Mapped[list[Frame]] = relationship(
         back_populates="scene", cascade="all, delete-orphan", passive_deletes=True

@@ -9,6 +9,7 @@ from fastapi import APIRouter, Query
 from sqlalchemy import select
 
 from csa_core.eval import continual_metrics
+from server.auth import OperatorScope
 from server.db.models import Evaluation, Scene
 from server.deps import DbDep
 from server.errors import not_found
@@ -17,7 +18,7 @@ from server.registry import lineage_chain
 from server.schemas.common import ERROR_RESPONSES, Name
 from server.schemas.continual import ContinualMetricsOut, StepOut
 
-router = APIRouter(prefix="/metrics", tags=["metrics"], responses=ERROR_RESPONSES)
+router = APIRouter(prefix="/metrics", tags=["metrics"], responses=ERROR_RESPONSES, dependencies=[OperatorScope])
 
 
 @router.get("/continual", response_model=ContinualMetricsOut, summary="R matrix, ACC, A, FWT and BWT over the adaptation history")

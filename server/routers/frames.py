@@ -18,6 +18,7 @@ from starlette.concurrency import run_in_threadpool
 from csa_core.data.image_files import COLOR_EXTS
 from csa_core.data.scene_io import frame_names
 from server.archives import ArchiveLimits, UnsafeArchive, extract_archive
+from server.auth import DeviceScope, SceneAccess
 from server.db.models import Frame, Scene
 from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import APIError, invalid, not_found, too_large
@@ -34,7 +35,13 @@ from server.pagination import PAGE_RESPONSES, PageDep, page
 from server.schemas.common import ERROR_RESPONSES
 from server.schemas.frames import ArchiveUploadOut, FrameOut, FrameUploadOut, SkippedFrameOut
 
-router = APIRouter(prefix="/scenes/{scene_ref}", tags=["frames"], responses={**ERROR_RESPONSES, 409: ERROR_RESPONSES[422], 413: ERROR_RESPONSES[422]})
+# Device keys upload to and read the scenes they created (server/auth.py, check_scene_access).
+router = APIRouter(
+    prefix="/scenes/{scene_ref}",
+    tags=["frames"],
+    responses={**ERROR_RESPONSES, 409: ERROR_RESPONSES[422], 413: ERROR_RESPONSES[422]},
+    dependencies=[DeviceScope, SceneAccess],
+)
 
 _TEXT_LIMIT = 64 * 1024  # pose and intrinsics files are a few hundred bytes
 

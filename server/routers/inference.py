@@ -16,6 +16,7 @@ from csa_core.data import image_files
 from csa_core.data.label_images import colorize
 from csa_core.errors import CSAInputError
 from server import capabilities
+from server.auth import DeviceScope
 from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import invalid, not_available, too_large
 from server.image_headers import image_format, image_size
@@ -23,7 +24,7 @@ from server.lookups import get_model
 from server.registry import checkpoint_sha
 from server.schemas.common import ERROR_RESPONSES
 
-router = APIRouter(tags=["inference"], responses={**ERROR_RESPONSES, 413: ERROR_RESPONSES[422], 501: ERROR_RESPONSES[422]})
+router = APIRouter(tags=["inference"], responses={**ERROR_RESPONSES, 413: ERROR_RESPONSES[422], 501: ERROR_RESPONSES[422]}, dependencies=[DeviceScope])
 
 
 def _png(img: np.ndarray) -> bytes:

@@ -11,6 +11,7 @@ from fastapi import APIRouter, Body, Path, Query, status
 from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
+from server.auth import OperatorScope
 from server.db.models import MAX_ID, Job, JobLog
 from server.db.session import session_scope
 from server.deps import DbDep, ServicesDep
@@ -25,7 +26,7 @@ _KEEPALIVE_SECONDS = 15.0  # a comment line keeps proxies and clients from timin
 
 JobId = Annotated[int, Path(ge=1, le=MAX_ID)]
 
-router = APIRouter(prefix="/jobs", tags=["jobs"], responses=ERROR_RESPONSES)
+router = APIRouter(prefix="/jobs", tags=["jobs"], responses=ERROR_RESPONSES, dependencies=[OperatorScope])
 
 
 @router.get("/kinds", response_model=list[JobKindOut], summary="the job kinds and whether this build can run them")

@@ -8,6 +8,7 @@ import zipfile
 from fastapi import APIRouter, Response
 from sqlalchemy import select
 
+from server.auth import OperatorScope
 from server.db.models import NerfCheckpoint, Scene
 from server.deps import DbDep, ServicesDep
 from server.errors import not_found
@@ -15,7 +16,7 @@ from server.lookups import active_nerf, get_scene
 from server.schemas.common import ERROR_RESPONSES
 from server.schemas.memory import MemoryBankOut, NerfOut
 
-router = APIRouter(prefix="/memory", tags=["memory bank"], responses=ERROR_RESPONSES)
+router = APIRouter(prefix="/memory", tags=["memory bank"], responses=ERROR_RESPONSES, dependencies=[OperatorScope])
 
 
 def nerf_out(n: NerfCheckpoint, scene_name: str) -> NerfOut:

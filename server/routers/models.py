@@ -19,6 +19,7 @@ from starlette.concurrency import run_in_threadpool
 from csa_core.data.camera import parse_size
 from csa_core.errors import CSAInputError
 from server import capabilities
+from server.auth import OperatorScope
 from server.db.models import Evaluation, ModelVersion, Scene
 from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import conflict, invalid, not_available, too_large
@@ -28,7 +29,7 @@ from server.registry import checkpoint_sha, register_checkpoint, root_conflict, 
 from server.schemas.common import ERROR_RESPONSES, Name
 from server.schemas.models import ModelOut
 
-router = APIRouter(prefix="/models", tags=["models"], responses=ERROR_RESPONSES)
+router = APIRouter(prefix="/models", tags=["models"], responses=ERROR_RESPONSES, dependencies=[OperatorScope])
 
 
 def model_out(db: Session, m: ModelVersion) -> ModelOut:

@@ -9,6 +9,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import PlainTextResponse
 from sqlalchemy import func, select
 
+from server.auth import OperatorScope
 from server.db.models import (
     Artifact,
     Frame,
@@ -24,7 +25,7 @@ from server.jobs.queue import STATUSES
 from server.request_metrics import BUCKETS, RequestStats
 from server.schemas.common import ERROR_RESPONSES
 
-router = APIRouter(tags=["metrics"], responses={401: ERROR_RESPONSES[401]})
+router = APIRouter(tags=["metrics"], responses={401: ERROR_RESPONSES[401], 403: ERROR_RESPONSES[403]}, dependencies=[OperatorScope])
 
 
 def _esc(v: str) -> str:

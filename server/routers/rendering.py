@@ -13,6 +13,7 @@ from csa_core.data.camera import Intrinsics
 from csa_core.data.image_files import depth_to_mm
 from csa_core.data.label_images import colorize
 from server import capabilities
+from server.auth import OperatorScope
 from server.db.models import NerfCheckpoint
 from server.deps import DbDep, ServicesDep
 from server.errors import invalid, not_available, not_found
@@ -21,7 +22,7 @@ from server.nerf_cache import NerfCache
 from server.schemas.common import ERROR_RESPONSES
 from server.schemas.rendering import RenderOut, RenderRequest
 
-router = APIRouter(tags=["rendering"], responses={**ERROR_RESPONSES, 501: ERROR_RESPONSES[422]})
+router = APIRouter(tags=["rendering"], responses={**ERROR_RESPONSES, 501: ERROR_RESPONSES[422]}, dependencies=[OperatorScope])
 
 MAX_RENDER_PIXELS = 1024 * 1024
 

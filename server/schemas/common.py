@@ -121,7 +121,8 @@ class IntrinsicsOut(BaseModel):
 
 ERROR_RESPONSES: dict[int | str, dict] = {
     400: {"model": ErrorBody, "description": "malformed body (not JSON, broken multipart)"},
-    401: {"model": ErrorBody, "description": "missing or invalid API key"},
+    401: {"model": ErrorBody, "description": "missing, invalid, revoked or expired API key"},
+    403: {"model": ErrorBody, "description": "the key's scope does not reach this route or scene (the message names the scope needed)"},
     404: {"model": ErrorBody, "description": "not found"},
     422: {"model": ErrorBody, "description": "invalid input; `field` names the culprit"},
 }

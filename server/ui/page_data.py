@@ -26,6 +26,7 @@ from csa_core.data.scene import split_point
 from server.artifacts import ArtifactStore
 from server.db.models import Frame
 from server.errors import APIError
+from server.keys import Principal
 from server.lookups import active_nerf, current_model
 from server.model_cache import ModelCache
 from server.registry import checkpoint_sha
@@ -107,10 +108,10 @@ class SceneRow:
     nerf_quality: list[tuple[str, str]]
 
 
-def scene_rows(db: Session, coverage: DepthCoverage) -> list[SceneRow]:
+def scene_rows(db: Session, coverage: DepthCoverage, visible_to: Principal | None = None) -> list[SceneRow]:
     bank = {e.scene_id: e for e in memory_route.memory_bank(db, include_inactive=False).entries}
     rows = []
-    for scene in scenes_route.all_scenes(db):
+    for scene in scenes_route.all_scenes(db, visible_to):
         shas = list(
             db.scalars(
                 select(Frame.depth_sha256)

@@ -30,17 +30,30 @@ from fastapi import (
 )
 from fastapi.responses import FileResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
+from sqlalchemy import func, select
 from starlette.concurrency import run_in_threadpool
 
 from csa_core.data.scene import split_point
 from server import capabilities
+from server.auth import DeviceScope, OperatorScope, SceneAccess, check_scene_access
 from server.deps import DbDep, ServicesDep
 from server.errors import APIError, conflict, not_available, not_found, too_large
 from server.jobs import queue
 from server.jobs.kinds import KINDS
+from server.keys import ADMIN, DEVICE, OPERATOR, Principal, Scope
 from server.lookups import active_nerf, current_model, get_job, get_scene
 from server.registry import root_conflict
-from server.routers import continual, frames, inference, jobs, memory, models, rendering, scenes
+from server.routers import (
+    admin,
+    continual,
+    frames,
+    inference,
+    jobs,
+    memory,
+    models,
+    rendering,
+    scenes,
+)
 from server.schemas.jobs import JobOut
 from server.ui import page_data, panels
 from server.ui.session import (
@@ -81,7 +94,20 @@ NAV = (
     ("memory", "Memory bank"),
     ("try", "Try it"),
     ("work", "Start work"),
+    ("audit", "Audit log"),
 )
+# The scope each page needs, the REST routes' scopes (docs/operations.md "Dashboard").
+PAGE_SCOPES: dict[str, Scope] = {
+    "scenes": DEVICE,
+    "jobs": OPERATOR,
+    "models": OPERATOR,
+    "continual": OPERATOR,
+    "memory": OPERATOR,
+    "try": DEVICE,
+    "work": OPERATOR,
+    "audit": ADMIN,
+}
+AUDIT_PER_PAGE = 100
 
 templates = Jinja2Templates(directory=HERE / "templates")
 
@@ -130,10 +156,12 @@ templates.env.filters.update(
 def _page(
     request: Request, name: str, session: UISession | None, status_code: int = 200, **context: Any
 ) -> Response:
+    principal = session.principal if session else None
     context |= {
-        "nav": NAV,
+        "nav": [(k, label) for k, label in NAV if principal and principal.allows(PAGE_SCOPES[k])],
         "csrf_token": session.csrf_token if session else "",
         "signed_in": session is not None,
+        "principal": principal,
     }
     return templates.TemplateResponse(
         request, name, context, status_code=status_code, headers=PAGE_HEADERS
@@ -153,7 +181,8 @@ def _safe_next(target: str | None) -> str:
 
 
 def page_session(request: Request) -> UISession:
-    """Dependency of pages: the session, or a redirect to the sign-in page."""
+    """Dependency of pages: the session, or a redirect to the sign-in page; 403 naming the
+    scope when the key's scope does not reach the page."""
     session = current_session(request)
     if session is None:
         target = request.url.path + (f"?{request.url.query}" if request.url.query else "")
@@ -161,6 +190,16 @@ def page_session(request: Request) -> UISession:
             status_code=status.HTTP_303_SEE_OTHER,
             detail="sign in first",
             headers={"Location": f"/ui/login?next={quote(target, safe='/')}", **PAGE_HEADERS},
+        )
+    request.state.principal = session.principal
+    page = request.url.path.removeprefix("/ui/").split("/", 1)[0]
+    needed = PAGE_SCOPES.get(page)
+    principal: Principal = session.principal
+    if needed is not None and not principal.allows(needed):
+        raise APIError(
+            403,
+            "forbidden",
+            f"this page needs scope {needed!r}; key {principal.name!r} has {principal.scope!r}",
         )
     return session
 
@@ -171,7 +210,7 @@ ApiSession = Annotated[UISession, Depends(require_ui_session)]
 router = APIRouter(prefix="/ui", include_in_schema=False)
 
 # The REST API for the pages' scripts: same routes, session cookie and CSRF checks.
-for _module in (scenes, frames, jobs, models, memory, continual, inference, rendering):
+for _module in (scenes, frames, jobs, models, memory, continual, inference, rendering, admin):
     router.include_router(
         _module.router, prefix="/api/v1", dependencies=[Depends(require_ui_session)]
     )
@@ -211,7 +250,8 @@ def login(
         return _page(
             request, "login.html", None, status_code=401, next=target, error="Enter an API key."
         )
-    if len(api_key) > 1024 or not valid_key(request, api_key.strip()):
+    principal = valid_key(request, api_key.strip()) if len(api_key) <= 1024 else None
+    if principal is None:
         log.warning(
             "dashboard sign-in refused (invalid API key) from %s",
             request.client.host if request.client else "?",
@@ -227,7 +267,7 @@ def login(
     response = RedirectResponse(target, status_code=status.HTTP_303_SEE_OTHER)
     response.set_cookie(
         COOKIE,
-        signer(request).issue(api_key.strip()),
+        signer(request).issue(api_key.strip(), key_row=principal.key_id),
         max_age=SESSION_SECONDS,
         path=COOKIE_PATH,
         secure=is_https(request),
@@ -284,7 +324,7 @@ def _coverage(request: Request, services) -> page_data.DepthCoverage:
 def scenes_page(
     request: Request, session: PageSession, db: DbDep, services: ServicesDep
 ) -> Response:
-    rows = page_data.scene_rows(db, _coverage(request, services))
+    rows = page_data.scene_rows(db, _coverage(request, services), visible_to=session.principal)
     return _page(request, "scenes.html", session, active="scenes", rows=rows)
 
 
@@ -298,6 +338,7 @@ def scene_page(
     page: Annotated[int, Query(ge=0, le=100_000)] = 0,
 ) -> Response:
     try:
+        check_scene_access(request, db)  # a device key sees only the scenes it created
         scene = scenes.scene_out(db, get_scene(db, scene_ref))
     except APIError as e:
         return _page(request, "error.html", session, e.status, active="scenes", error=e.message)
@@ -426,7 +467,8 @@ def try_page(request: Request, session: PageSession, db: DbDep) -> Response:
         model=current_model(db),
         seg_reason=capabilities.missing_reason("seg"),
         nerf_reason=capabilities.missing_reason("nerf"),
-        nerf_scenes=page_data.nerf_scenes(db),
+        # Renders need operator; a device key's page offers predictions only.
+        nerf_scenes=page_data.nerf_scenes(db) if session.principal.allows(OPERATOR) else [],
     )
 
 
@@ -450,6 +492,31 @@ def work_page(request: Request, session: PageSession, db: DbDep) -> Response:
     )
 
 
+@router.get("/audit")
+def audit_page(
+    request: Request,
+    session: PageSession,
+    db: DbDep,
+    key_name: Annotated[str | None, Query(max_length=64)] = None,
+    page: Annotated[int, Query(ge=0, le=100_000)] = 0,
+) -> Response:
+    """The audit log, newest first, for admin keys (the route /api/v1/audit answers the same)."""
+    query = admin.audit_query(key_name or None)
+    total = db.scalar(select(func.count()).select_from(query.order_by(None).subquery())) or 0
+    entries = list(db.scalars(query.limit(AUDIT_PER_PAGE).offset(page * AUDIT_PER_PAGE)))
+    return _page(
+        request,
+        "audit.html",
+        session,
+        active="audit",
+        entries=entries,
+        key_name=key_name or "",
+        page=page,
+        pages=max(1, math.ceil(total / AUDIT_PER_PAGE)),
+        total=total,
+    )
+
+
 # -- pictures and actions for the pages ---------------------------------------------------
 
 
@@ -457,7 +524,11 @@ def _not_modified(request: Request, etag: str) -> bool:
     return etag in [t.strip() for t in request.headers.get("if-none-match", "").split(",")]
 
 
-@router.get("/img/scenes/{scene_ref}/frames/{name}/{panel}.png", response_class=Response)
+@router.get(
+    "/img/scenes/{scene_ref}/frames/{name}/{panel}.png",
+    response_class=Response,
+    dependencies=[Depends(require_ui_session), DeviceScope, SceneAccess],
+)
 def frame_panel(
     request: Request,
     scene_ref: str,
@@ -481,7 +552,11 @@ def frame_panel(
     return Response(body, media_type="image/png", headers=headers)
 
 
-@router.get("/img/continual.png", response_class=Response)
+@router.get(
+    "/img/continual.png",
+    response_class=Response,
+    dependencies=[Depends(require_ui_session), OperatorScope],
+)
 def continual_plot(
     _: ApiSession,
     db: DbDep,
@@ -498,7 +573,7 @@ def continual_plot(
     )
 
 
-@router.post("/api/predict-preview")
+@router.post("/api/predict-preview", dependencies=[Depends(require_ui_session), DeviceScope])
 async def predict_preview(
     request: Request,
     _: ApiSession,
@@ -520,7 +595,11 @@ async def predict_preview(
     )
 
 
-@router.post("/api/jobs/{job_id}/retry", status_code=status.HTTP_202_ACCEPTED)
+@router.post(
+    "/api/jobs/{job_id}/retry",
+    status_code=status.HTTP_202_ACCEPTED,
+    dependencies=[Depends(require_ui_session), OperatorScope],
+)
 def retry_job(
     job_id: jobs.JobId, _: ApiSession, db: DbDep
 ) -> JobOut:

@@ -1,7 +1,9 @@
 """Dashboard sessions: an API key signs a person in once; a signed cookie carries the session.
 
-The cookie never holds the key. It holds a random session nonce, its expiry and a key id,
-``HMAC(secret, key)``, so a session ends when its key is removed from the service's keys.
+The cookie never holds the key. It holds a random session nonce, its expiry, a key id,
+``HMAC(secret, sha256(key))``, and for a key of the database its row id; every request checks
+the key again, so a session ends when its key is revoked, expires or is removed from the
+settings' keys, and it carries the key's scope (docs/operations.md "Dashboard").
 The whole value is signed with a random secret kept in ``data_dir/ui_session_secret``
 (created once, mode 0600), so sessions survive restarts and are shared by every process that
 uses the same data folder. The cookie is ``HttpOnly``, ``SameSite=Strict``, limited to
@@ -31,7 +33,9 @@ from urllib.parse import urlsplit
 
 from fastapi import Request
 
+from server.db.models import ApiKey
 from server.errors import APIError
+from server.keys import Principal, hash_secret, key_state
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +87,17 @@ class UISession:
     nonce: str
     expires: int
     csrf_token: str
+    principal: Principal | None = None  # who signed in (set by current_session)
+
+
+@dataclass(frozen=True)
+class SignedCookie:
+    """A cookie whose signature and expiry are good: the key it names is still to be checked."""
+
+    key_id: str
+    key_row: int | None  # the database key's id; None for a settings key
+    nonce: str
+    expires: int
 
 
 class SessionSigner:
@@ -95,29 +110,32 @@ class SessionSigner:
         return hmac.new(self._secret, f"{purpose}\0{value}".encode(), hashlib.sha256).digest()
 
     def key_id(self, api_key: str) -> str:
-        return _b64(self._mac("key", api_key)[:18])
+        return self.key_id_of_hash(hash_secret(api_key))
+
+    def key_id_of_hash(self, digest: str) -> str:
+        """The key id of a key's sha256: what a database key's row lets us recompute."""
+        return _b64(self._mac("key", digest)[:18])
 
     def csrf_token(self, nonce: str) -> str:
         return _b64(self._mac("csrf", nonce))
 
-    def issue(self, api_key: str, now: float | None = None) -> str:
-        """The cookie value of a new session for ``api_key`` (which must be valid)."""
+    def issue(self, api_key: str, now: float | None = None, key_row: int | None = None) -> str:
+        """The cookie value of a new session for ``api_key`` (which must be valid);
+        ``key_row`` is the id of a database key."""
         now = time.time() if now is None else now
-        payload = json.dumps(
-            {
-                "k": self.key_id(api_key),
-                "n": secrets.token_urlsafe(18),
-                "e": int(now) + SESSION_SECONDS,
-            },
-            separators=(",", ":"),
-        )
+        fields: dict[str, object] = {
+            "k": self.key_id(api_key),
+            "n": secrets.token_urlsafe(18),
+            "e": int(now) + SESSION_SECONDS,
+        }
+        if key_row is not None:
+            fields["i"] = key_row
+        payload = json.dumps(fields, separators=(",", ":"))
         body = _b64(payload.encode())
         return f"{body}.{_b64(self._mac('cookie', body))}"
 
-    def verify(
-        self, cookie: str | None, api_keys: list[str], now: float | None = None
-    ) -> UISession | None:
-        """The session of a cookie value, or None: bad signature, expired, or its key is gone."""
+    def open(self, cookie: str | None, now: float | None = None) -> SignedCookie | None:
+        """The fields of a cookie this signer issued that has not expired, or None."""
         if not cookie or cookie.count(".") != 1 or len(cookie) > 512:
             return None
         body, sig = cookie.split(".")
@@ -126,13 +144,29 @@ class SessionSigner:
                 return None
             payload = json.loads(_unb64(body))
             kid, nonce, expires = str(payload["k"]), str(payload["n"]), int(payload["e"])
-        except (ValueError, KeyError, TypeError):
+            row = payload.get("i")
+            if row is not None and type(row) is not int:
+                return None
+        except (ValueError, KeyError, TypeError, AttributeError):
             return None
         if expires <= (time.time() if now is None else now):
             return None
-        if not any(hmac.compare_digest(kid, self.key_id(k)) for k in api_keys):
+        return SignedCookie(kid, row, nonce, expires)
+
+    def session(self, opened: SignedCookie, principal: Principal | None = None) -> UISession:
+        return UISession(opened.nonce, opened.expires, self.csrf_token(opened.nonce), principal)
+
+    def verify(
+        self, cookie: str | None, api_keys: list[str], now: float | None = None
+    ) -> UISession | None:
+        """The session of a cookie of one of ``api_keys`` (settings keys), or None: bad
+        signature, expired, or its key is gone."""
+        opened = self.open(cookie, now)
+        if opened is None or opened.key_row is not None:
             return None
-        return UISession(nonce=nonce, expires=expires, csrf_token=self.csrf_token(nonce))
+        if not any(hmac.compare_digest(opened.key_id, self.key_id(k)) for k in api_keys):
+            return None
+        return self.session(opened)
 
 
 _signer_lock = threading.Lock()
@@ -148,13 +182,37 @@ def signer(request: Request) -> SessionSigner:
     return state.ui_signer
 
 
-def valid_key(request: Request, given: str) -> bool:
-    keys: list[str] = request.app.state.services.api_keys
-    return bool(given) and any(hmac.compare_digest(given.encode(), k.encode()) for k in keys)
+def valid_key(request: Request, given: str) -> Principal | None:
+    """The principal of a key typed into the sign-in form, or None when it is not valid."""
+    from server.auth import authenticate
+
+    if not given:
+        return None
+    try:
+        return authenticate(request, given)
+    except APIError:
+        return None
 
 
 def current_session(request: Request) -> UISession | None:
-    return signer(request).verify(request.cookies.get(COOKIE), request.app.state.services.api_keys)
+    """The signed-in session with its principal, checked against the keys on every request."""
+    sign = signer(request)
+    opened = sign.open(request.cookies.get(COOKIE))
+    if opened is None:
+        return None
+    services = request.app.state.services
+    if opened.key_row is None:
+        for digest, principal in services.key_principals.items():
+            if hmac.compare_digest(opened.key_id, sign.key_id_of_hash(digest)):
+                return sign.session(opened, principal)
+        return None
+    with services.sessions() as db:
+        key = db.get(ApiKey, opened.key_row)
+        if key is None or key_state(key) != "active":
+            return None
+        if not hmac.compare_digest(opened.key_id, sign.key_id_of_hash(key.secret_sha256)):
+            return None
+        return sign.session(opened, Principal(key.name, key.scope, key.id))
 
 
 def is_https(request: Request) -> bool:
@@ -200,4 +258,5 @@ def require_ui_session(request: Request) -> UISession:
         )
     if request.method not in SAFE_METHODS:
         check_csrf(request, session, request.headers.get(CSRF_HEADER))
+    request.state.principal = session.principal  # for the routes' scope checks and the audit log
     return session
