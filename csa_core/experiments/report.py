@@ -100,6 +100,7 @@ class Plot:
     xticks: list[float] | None = None
     xticklabels: list[str] | None = None
     logy: bool = False
+    ylim: tuple[float, float] | None = None  # a fixed y range (e.g. 0-100 for a percentage)
 
 
 @dataclass
@@ -141,6 +142,8 @@ def save_plot(path: Path, plot: Plot) -> None:
             ax.set_xticklabels(plot.xticklabels, rotation=20, ha="right")
     if plot.logy:
         ax.set_yscale("log")
+    if plot.ylim is not None:
+        ax.set_ylim(*plot.ylim)
     ax.grid(True, alpha=0.3)
     if plot.series:
         ax.legend(fontsize="small")

@@ -186,6 +186,16 @@ def draw_panel(
     return png(overlay(color, labels) if src.panel == "overlay" else colorize(labels))
 
 
+def class_color(class_id: int) -> str:
+    """The NYU40 colour of a class as ``#rrggbb`` (the pictures' colours)."""
+    return "#{:02x}{:02x}{:02x}".format(*(int(v) for v in PALETTE[class_id]))
+
+
+def class_legend() -> list[dict[str, object]]:
+    """Every NYU40 class with its colour, in id order: the legend of the scene page's pictures."""
+    return [{"id": i, "name": name, "color": class_color(i)} for i, name in enumerate(CLASS_NAMES)]
+
+
 def legend(labels: np.ndarray) -> list[dict[str, object]]:
     """The classes in a label map, most frequent first: id, name, colour and pixel share."""
     ids, counts = np.unique(labels, return_counts=True)
@@ -195,7 +205,7 @@ def legend(labels: np.ndarray) -> list[dict[str, object]]:
         {
             "id": int(ids[i]),
             "name": CLASS_NAMES[int(ids[i])],
-            "color": "#{:02x}{:02x}{:02x}".format(*(int(v) for v in PALETTE[int(ids[i])])),
+            "color": class_color(int(ids[i])),
             "share": int(counts[i]) / total,
         }
         for i in order

@@ -151,6 +151,7 @@ templates.env.filters.update(
     heat=_heat,
     tojson_pretty=lambda v: json.dumps(v, indent=2, sort_keys=True, default=str),
 )
+templates.env.globals["class_legend"] = panels.class_legend()  # the pictures' colours
 
 
 def _page(
@@ -264,6 +265,7 @@ def login(
             next=target,
             error="That API key is not valid.",
         )
+    request.state.principal = principal  # the audit log records who signed in
     response = RedirectResponse(target, status_code=status.HTTP_303_SEE_OTHER)
     response.set_cookie(
         COOKIE,

@@ -194,6 +194,10 @@ def test_scene_page_shows_the_frames_and_the_networks_labels(dash: Dashboard) ->
     scene = dash.api.scene(dash.target_scene.name)
     dash.goto(f"/ui/scenes/{scene.id}")
     assert page.locator("#frame-strip .thumb").count() == 8
+    assert page.inner_text("#frame-count") == "All 8 frames"
+    # Every thumbnail of the page is in view (the strip wraps instead of scrolling sideways).
+    assert page.eval_on_selector("#frame-strip", "s => s.scrollWidth <= s.clientWidth")
+    assert page.locator("#class-legend li").count() == 41 and page.locator("#class-legend").is_visible()
     page.click('#frame-strip .thumb[data-frame="3"]')
     page.wait_for_selector('#frame-panels[data-frame="3"]')
     dash.page.wait_for_selector("body[data-ready]")
@@ -334,6 +338,7 @@ def test_memory_bank_page_compares_with_mapping_and_cotta(dash: Dashboard, tmp_p
     assert cells[1] == size_text(entry.size_bytes)
     assert cells[5] == "8 (6)"  # 80% of 8 frames train
     assert cells[6] == size_text(6 * W * H * 4)  # RGB + label bytes of 6 training frames
+    assert cells[7] == f"{entry.size_bytes / (6 * W * H * 4):.3g}×"  # the ratio, not a word
     path = dash.api.download_model("current", tmp_path / "current.safetensors")
     net, _ = load_checkpoint(path, device="cpu")
     footprint = {
@@ -367,6 +372,9 @@ def test_try_it_labels_an_uploaded_image_and_renders_a_training_pose(dash: Dashb
     page = dash.page
     image = dash.target_scene / "color" / "5.png"
     dash.goto("/ui/try")
+    # Before the first use: no empty pictures and no empty legend.
+    for result in ("#predict-result", "#predict-overlay", "#predict-legend", "#render-result", "#render-color"):
+        assert page.locator(result).is_hidden(), result
     page.set_input_files("#predict-file", str(image))
     page.click("#predict-button")
     page.wait_for_selector("#predict-result:not([hidden])")
@@ -412,6 +420,18 @@ def test_a_failed_job_shows_its_reason_and_can_be_retried(dash: Dashboard) -> No
     dash.goto(f"/ui/jobs/{job.id}")
     assert "no ground-truth labels" in page.inner_text("#job-error")
     assert page.locator("#job-retry").is_visible() and page.locator("#job-cancel").is_hidden()
+    # The error is one line until opened; the log's multi-line entries (tracebacks) are folded.
+    one_line = "s => s.getBoundingClientRect().height < 2 * parseFloat(getComputedStyle(s).lineHeight || 16)"
+    assert page.eval_on_selector("#job-error summary", one_line)
+    page.click("#job-error summary")
+    assert page.eval_on_selector("#job-error", "d => d.open")
+    assert page.eval_on_selector_all("#job-log details", "ds => ds.every(d => !d.open)")
+    dash.goto("/ui/jobs")
+    cell = f'#jobs tr[data-job-id="{job.id}"] [data-field="message"]'
+    assert "no ground-truth labels" in page.inner_text(cell)
+    assert page.eval_on_selector(f"{cell} details.error-text summary", one_line)
+    assert page.eval_on_selector(cell, "td => td.scrollWidth <= td.clientWidth + 1")
+    dash.goto(f"/ui/jobs/{job.id}")
     dash.shot("job-failed")
     page.click("#job-retry")
     page.wait_for_url(

@@ -46,6 +46,40 @@
   }
 
   const percent = (fraction) => `${Math.round(100 * (fraction || 0))}%`;
+
+  // A failed job's error as the pages draw it (templates/_macros.html error_text): one line
+  // cut where its column ends, the whole text once opened.
+  function errorText(text) {
+    const box = document.createElement("details");
+    box.className = "error-text";
+    const summary = document.createElement("summary");
+    summary.title = "show the whole error";
+    summary.textContent = text;
+    box.append(summary);
+    return box;
+  }
+
+  // One line of a job's log (templates/_macros.html log_line): a line of several lines (a
+  // traceback) folded to its first.
+  function logEntry(line) {
+    const head = `${line.time.slice(11, 19)} ${line.level} `;
+    const parts = line.message.split("\n");
+    if (parts.length === 1) {
+      const div = document.createElement("div");
+      div.className = "log-entry";
+      div.textContent = head + line.message;
+      return div;
+    }
+    const box = document.createElement("details");
+    box.className = "log-entry";
+    const summary = document.createElement("summary");
+    const more = document.createElement("span");
+    more.className = "muted";
+    more.textContent = `(${parts.length - 1} more lines)`;
+    summary.append(`${head}${parts[0]} `, more);
+    box.append(summary, parts.slice(1).join("\n"));
+    return box;
+  }
   const pngData = (b64) => `data:image/png;base64,${b64}`;
 
   function busy(button, on) {
@@ -70,7 +104,7 @@
       byId("job-percent").textContent = percent(job.progress);
       byId("job-message").textContent = job.message;
       const error = byId("job-error");
-      error.textContent = job.error || "";
+      error.querySelector("summary").textContent = job.error || "";
       error.hidden = !job.error || job.status === "succeeded";
       byId("job-cancel").hidden = terminal.has(job.status);
       byId("job-retry").hidden = !(job.status === "failed" || job.status === "cancelled");
@@ -90,7 +124,15 @@
       try {
         const data = await api("GET", `/ui/api/v1/jobs/${id}/log?tail=200`);
         const log = byId("job-log");
-        log.textContent = data.lines.map((l) => `${l.time.slice(11, 19)} ${l.level} ${l.message}\n`).join("");
+        const open = new Set([...log.querySelectorAll("details[open]")].map((d) => d.dataset.key));
+        log.replaceChildren(
+          ...data.lines.map((l) => {
+            const entry = logEntry(l);
+            entry.dataset.key = `${l.time} ${l.message.length}`;
+            if (entry.tagName === "DETAILS" && open.has(entry.dataset.key)) entry.open = true;
+            return entry;
+          }),
+        );
         log.scrollTop = log.scrollHeight;
       } catch (e) {
         flash(`log: ${e.message}`);
@@ -157,8 +199,8 @@
           row.querySelector('[data-field="progress"]').value = job.progress;
           row.querySelector('[data-field="percent"]').textContent = percent(job.progress);
           const message = row.querySelector('[data-field="message"]');
-          message.textContent = job.status === "failed" && job.error ? job.error : job.message;
-          message.classList.toggle("error", job.status === "failed");
+          if (job.status === "failed" && job.error) message.replaceChildren(errorText(job.error));
+          else message.textContent = job.message;
         }
       } catch (e) {
         flash(e.message);
