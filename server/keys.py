@@ -71,9 +71,14 @@ def parse_duration(text: str, field: str = "expires") -> dt.timedelta:
     return int(match.group(1)) * _UNIT[match.group(2)]
 
 
+GENERATED_KEY_NAME = "data-dir-api-key"  # the settings' generated key (CSA_API_KEYS#n cannot be a name)
+
+
 def check_name(name: str, field: str = "name") -> str:
     if not NAME_PATTERN.match(name):
         raise invalid(field, f"{name!r} is not a key name (a letter, then up to 63 letters, digits, '_', '.' or '-')")
+    if name == GENERATED_KEY_NAME:
+        raise invalid(field, f"{name!r} names the generated settings key in the audit log; choose another name")
     return name
 
 
@@ -86,7 +91,7 @@ def check_scope(scope: str, field: str = "scope") -> Scope:
 def settings_principals(keys: list[str], generated: bool) -> dict[str, Principal]:
     """sha256 -> admin principal of each settings key, named after where it comes from."""
     if generated:
-        return {hash_secret(k): Principal("data-dir-api-key", ADMIN) for k in keys}
+        return {hash_secret(k): Principal(GENERATED_KEY_NAME, ADMIN) for k in keys}
     return {hash_secret(k): Principal(f"CSA_API_KEYS#{i + 1}", ADMIN) for i, k in enumerate(keys)}
 
 

@@ -224,6 +224,8 @@ def test_revocation_and_expiry_take_effect_at_the_next_request(keyed: Keyed) -> 
         assert r.status_code == 409 and r.json()["error"]["field"] == "name"
         r = admin.post("/api/v1/keys", json={"name": "x1", "scope": "device", "expires_in": "soon"})
         assert r.status_code == 422 and r.json()["error"]["field"] == "expires_in"
+        r = admin.post("/api/v1/keys", json={"name": "data-dir-api-key", "scope": "admin"})
+        assert r.status_code == 422 and r.json()["error"]["field"] == "name"  # the generated key's name
         r = admin.post("/api/v1/keys", json={"name": "x2", "scope": "root"})
         assert r.status_code == 422 and "scope" in r.json()["error"]["field"]
         assert admin.post("/api/v1/keys/no-such/revoke").status_code == 404
@@ -352,6 +354,7 @@ def test_the_dashboard_signs_in_by_key_and_shows_what_the_scope_allows(keyed: Ke
         page = c.get("/ui/audit", params={"key_name": "ui-device"})
         assert page.status_code == 200 and 'href="/ui/audit"' in page.text
         assert "/ui/api/v1/scenes" in page.text and "ui-device" in page.text  # the dashboard's write
+        assert "/ui/login" in page.text  # and its sign-in
     with httpx.Client(base_url=keyed.live.url, timeout=30) as c:
         r = c.post("/ui/login", data={"api_key": keyed.keys["revoked"]}, headers=origin)
         assert r.status_code == 401
