@@ -24,11 +24,15 @@ from csa_core.data.synth.boxes import BoxSet, any_hit, closest_hit, face_hit
 from csa_core.data.synth.families import BASE_LOOKS
 from csa_core.data.synth.floorplan import CELL_M, CLEARANCE_M
 from csa_core.data.synth.generate import room_and_path
+from csa_core.data.synth.render import room_solids
 from csa_core.data.synth.textures import MaterialTable, albedo, has_look
 from csa_core.errors import CSAInputError
 
 NYU = "label-nyu40"
 SHELL = {class_id("wall"), class_id("floor"), class_id("ceiling")}
+# Seed of the steady rooms. (Seed 4's studio walk looks at a brick wall so closely and obliquely
+# that 0.1 px of sampling offset crosses mortar lines on a fifth of the wall pixels.)
+STEADY_SEED = 3
 
 
 def _steady(name: str):
@@ -38,7 +42,7 @@ def _steady(name: str):
 
 @pytest.fixture(scope="module")
 def steady_scenes():
-    return {name: generate_scene(_steady(name), 4, 12, (128, 96)) for name in family_names()}
+    return {name: generate_scene(_steady(name), STEADY_SEED, 12, (128, 96)) for name in family_names()}
 
 
 @pytest.fixture(scope="module")
@@ -117,7 +121,7 @@ def test_reprojected_depth_sees_the_same_labels_and_colours(steady_scenes, famil
 
 def test_depth_is_z_depth_of_points_inside_the_closed_room(steady_scenes):
     for family, scene in steady_scenes.items():
-        room, _ = room_and_path(_steady(family), 4, 12)
+        room, _ = room_and_path(_steady(family), STEADY_SEED, 12)
         for f in scene.frames:
             assert f.depth.dtype == np.float32 and f.color.dtype == np.uint8 and f.labels[NYU].dtype == np.uint8
             assert np.all(np.isfinite(f.depth)) and f.depth.min() > 0.2
@@ -165,30 +169,46 @@ def test_a_walk_shows_walls_floor_and_at_least_eight_furniture_classes(walk):
     assert len(seen - SHELL - {0}) >= 8
 
 
+def _fill(solids, k: int) -> np.ndarray:
+    """Points spread through solid ``k`` (its axis, inside and surface)."""
+    nb = len(solids.boxes)
+    if k < nb:
+        g = np.linspace(-1.0, 1.0, 7)
+        local = np.stack(np.meshgrid(g, g, g), axis=-1).reshape(-1, 3) * solids.boxes.half[k]
+        return local @ solids.boxes.rot[k].T + solids.boxes.center[k]
+    c = k - nb
+    a, b, r = solids.caps.a[c], solids.caps.b[c], solids.caps.radius[c]
+    ex, ey, _ = solids.caps.frame(np.array([c]))
+    axis = a + np.linspace(0.0, 1.0, 15)[:, None] * (b - a)
+    ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    ring = 0.95 * r * (np.cos(ang)[:, None] * ex + np.sin(ang)[:, None] * ey)
+    return np.concatenate([axis, (axis[:, None, :] + ring[None]).reshape(-1, 3)])
+
+
 @pytest.mark.parametrize("family", family_names())
 def test_layouts_hold_many_classes_and_nothing_interpenetrates(family):
+    """Every solid lies inside the room, and solids of different objects (group, class,
+    instance) never overlap by more than a millimetre, whatever their shape and tilt. Parts of
+    one object may join (a spindle set into its seat, a tilted post meeting the seat)."""
+    checked = 0
     for seed in range(3):
         room, _ = room_and_path(FAMILIES[family], seed, 2)
-        parts = [(gi, p.label, c, h, y) for gi, g in enumerate(room.groups) for c, h, y, p in g.world_parts()]
-        assert len({label for _, label, *_ in parts}) >= 8
-        for _, _, c, h, y in parts:
-            ext = np.array([abs(math.cos(y)) * h[0] + abs(math.sin(y)) * h[1], abs(math.sin(y)) * h[0] + abs(math.cos(y)) * h[1], h[2]])
-            assert np.all(c - ext >= -1e-6) and np.all(c + ext <= room.hi + 1e-6)
-        for a, b in itertools.combinations(parts, 2):
-            assert _overlap_depth(a[2:], b[2:]) < 1e-3, f"{a[1]} and {b[1]} interpenetrate"
-
-
-def _overlap_depth(a, b) -> float:
-    """Penetration depth of two yaw-rotated boxes (separating axes in the plane, interval in z)."""
-    (ca, ha, ya), (cb, hb, yb) = a, b
-    depth = min(ca[2] + ha[2], cb[2] + hb[2]) - max(ca[2] - ha[2], cb[2] - hb[2])
-    axes_a = np.array([[math.cos(ya), math.sin(ya)], [-math.sin(ya), math.cos(ya)]])
-    axes_b = np.array([[math.cos(yb), math.sin(yb)], [-math.sin(yb), math.cos(yb)]])
-    for ax in np.vstack([axes_a, axes_b]):
-        ra = abs(axes_a[0] @ ax) * ha[0] + abs(axes_a[1] @ ax) * ha[1]
-        rb = abs(axes_b[0] @ ax) * hb[0] + abs(axes_b[1] @ ax) * hb[1]
-        depth = min(depth, ra + rb - abs((cb[:2] - ca[:2]) @ ax))
-    return max(depth, 0.0)
+        solids, sources = room_solids(room)
+        assert len({p.label for _, p in sources}) >= 8
+        lo, hi = solids.aabb()
+        assert np.all(lo >= -1e-6) and np.all(hi <= room.hi + 1e-6)
+        obj = [(gi, p.label, p.instance) for gi, p in sources]
+        # Pairs whose bounds come within 2 cm: touching objects (books on a board, a lamp on a
+        # desk, chairs at a table) are checked too.
+        near = np.all(lo[:, None, :] < hi[None, :, :] + 0.02, axis=-1) & np.all(lo[None, :, :] < hi[:, None, :] + 0.02, axis=-1)
+        for i, j in zip(*np.nonzero(np.triu(near, 1)), strict=True):
+            if obj[i] == obj[j]:
+                continue
+            for a, b in ((i, j), (j, i)):
+                depth = solids.subset(np.array([b])).signed_distance(_fill(solids, a)).min()
+                assert depth > -1e-3, f"{sources[a][1].label} and {sources[b][1].label} interpenetrate"
+            checked += 1
+    assert checked > 50
 
 
 @pytest.mark.parametrize("family", family_names())
@@ -260,8 +280,9 @@ def test_each_room_draws_its_own_colours_around_the_family_shift():
 
 
 def test_slab_casting_matches_ray_marching():
+    """Boxes turned about z and tilted about their own x axis."""
     rng = np.random.default_rng(0)
-    boxes = BoxSet(rng.uniform(-2, 2, (6, 3)), rng.uniform(0.1, 0.6, (6, 3)), rng.uniform(0, 2 * np.pi, 6))
+    boxes = BoxSet(rng.uniform(-2, 2, (6, 3)), rng.uniform(0.1, 0.6, (6, 3)), rng.uniform(0, 2 * np.pi, 6), rng.uniform(-0.6, 0.6, 6))
     origin = np.array([0.1, -4.0, 0.2])
     dirs = rng.normal(0, 1, (300, 3)) * [0.5, 0.0, 0.5] + [0, 1, 0]
     t, idx = closest_hit(origin, dirs, boxes, np.full(len(dirs), np.inf))

@@ -1,18 +1,30 @@
-"""Yaw-oriented boxes and vectorised ray casting against them (slab method).
+"""Oriented boxes and vectorised ray casting against them (slab method).
 
 A room is an axis-aligned interior box (walls, floor, ceiling seen from inside) plus a set
-of solid boxes, each rotated about the vertical axis only. All functions take one ray
-origin shared by every ray (a camera centre or a light) and many directions, and test all
-rays against all boxes in one broadcast.
+of solid boxes, each rotated about the vertical axis (yaw) after an optional tilt about its
+own x axis (a chair back leaning back, a ladder shelf leaning on a wall). All functions take
+one ray origin shared by every ray (a camera centre or a light) and many directions, and
+test all rays against all boxes in one broadcast.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 _TINY = 1e-12
+
+
+def rotations(yaw: np.ndarray, tilt: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) ``Rz(yaw) @ Rx(tilt)``: columns are the local axes in world."""
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    ct, st = np.cos(tilt), np.sin(tilt)
+    zero, one = np.zeros_like(cy), np.ones_like(cy)
+    rz = np.stack([np.stack([cy, -sy, zero], -1), np.stack([sy, cy, zero], -1), np.stack([zero, zero, one], -1)], -2)
+    rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, ct, -st], -1), np.stack([zero, st, ct], -1)], -2)
+    return rz @ rx
 
 
 @dataclass(frozen=True)
@@ -20,35 +32,34 @@ class BoxSet:
     """``n`` solid boxes in world coordinates (metres, z up).
 
     ``center`` (n, 3), ``half`` (n, 3) half-extents along the box's own axes, ``yaw`` (n,)
-    rotation about +z. Box-local coordinates are ``R(yaw)^T (p - center)``.
+    rotation about +z applied after ``tilt`` (n,) about the box's own x axis (None: no
+    tilt). Box-local coordinates are ``R^T (p - center)`` with ``R = Rz(yaw) Rx(tilt)``.
     """
 
     center: np.ndarray
     half: np.ndarray
     yaw: np.ndarray
+    tilt: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.yaw)
 
-    @property
-    def cos(self) -> np.ndarray:
-        return np.cos(self.yaw)
-
-    @property
-    def sin(self) -> np.ndarray:
-        return np.sin(self.yaw)
+    @cached_property
+    def rot(self) -> np.ndarray:
+        """Local-to-world rotations (n, 3, 3)."""
+        tilt = np.zeros_like(self.yaw) if self.tilt is None else self.tilt
+        return rotations(np.asarray(self.yaw, dtype=np.float64), np.asarray(tilt, dtype=np.float64))
 
     def subset(self, idx: np.ndarray) -> BoxSet:
-        return BoxSet(self.center[idx], self.half[idx], self.yaw[idx])
+        out = BoxSet(self.center[idx], self.half[idx], self.yaw[idx], None if self.tilt is None else self.tilt[idx])
+        out.__dict__["rot"] = self.rot[idx]  # carry the cached rotations over
+        return out
 
     def corners(self) -> np.ndarray:
         """The 8 corners of every box, (n, 8, 3)."""
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
         local = signs[None] * self.half[:, None, :]
-        c, s = self.cos[:, None], self.sin[:, None]
-        x = c * local[..., 0] - s * local[..., 1]
-        y = s * local[..., 0] + c * local[..., 1]
-        return np.stack([x, y, local[..., 2]], axis=-1) + self.center[:, None, :]
+        return np.einsum("nij,nkj->nki", self.rot, local) + self.center[:, None, :]
 
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
         """World axis-aligned bounds (n, 3) min and max."""
@@ -57,18 +68,13 @@ class BoxSet:
 
     def to_local(self, points: np.ndarray, idx: np.ndarray) -> np.ndarray:
         """Points (m, 3) in the local frame of boxes ``idx`` (m,)."""
-        q = points - self.center[idx]
-        c, s = self.cos[idx], self.sin[idx]
-        return np.stack([c * q[:, 0] + s * q[:, 1], -s * q[:, 0] + c * q[:, 1], q[:, 2]], axis=-1)
+        return np.einsum("mji,mj->mi", self.rot[idx], points - self.center[idx])
 
     def dir_to_local(self, dirs: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        c, s = self.cos[idx], self.sin[idx]
-        return np.stack([c * dirs[:, 0] + s * dirs[:, 1], -s * dirs[:, 0] + c * dirs[:, 1], dirs[:, 2]], axis=-1)
+        return np.einsum("mji,mj->mi", self.rot[idx], dirs)
 
     def normal_to_world(self, local_normals: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        c, s = self.cos[idx], self.sin[idx]
-        n = local_normals
-        return np.stack([c * n[:, 0] - s * n[:, 1], s * n[:, 0] + c * n[:, 1], n[:, 2]], axis=-1)
+        return np.einsum("mij,mj->mi", self.rot[idx], local_normals)
 
 
 def _safe_inverse(d: np.ndarray) -> np.ndarray:
@@ -82,19 +88,15 @@ def slab_intervals(origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet) -> tuple
     callers refine the winning hit in float64 with :func:`face_hit`.
     """
     o = np.asarray(origin, dtype=np.float64)
-    c, s = boxes.cos.astype(np.float32), boxes.sin.astype(np.float32)
-    q = o[None, :] - boxes.center
-    o_loc = np.stack([boxes.cos * q[:, 0] + boxes.sin * q[:, 1], -boxes.sin * q[:, 0] + boxes.cos * q[:, 1], q[:, 2]], axis=-1)
-    o_loc = o_loc.astype(np.float32)
+    rot = boxes.rot
+    o_loc = np.einsum("nji,nj->ni", rot, o[None, :] - boxes.center).astype(np.float32)
     h = boxes.half.astype(np.float32)
     d = dirs.astype(np.float32)
-    dx, dy = d[:, 0:1], d[:, 1:2]
-    inv_x = _safe_inverse(c * dx + s * dy)
-    inv_y = _safe_inverse(-s * dx + c * dy)
-    inv_z = _safe_inverse(d[:, 2:3])
+    axes = rot.astype(np.float32)
+    invs = [_safe_inverse(d @ axes[:, :, k].T) for k in range(3)]
     near = np.full((len(d), len(boxes)), -np.inf, dtype=np.float32)
     far = np.full((len(d), len(boxes)), np.inf, dtype=np.float32)
-    for axis, inv in ((0, inv_x), (1, inv_y), (2, inv_z)):
+    for axis, inv in enumerate(invs):
         ta = (-h[:, axis] - o_loc[:, axis]) * inv
         tb = (h[:, axis] - o_loc[:, axis]) * inv
         np.maximum(near, np.minimum(ta, tb), out=near)

@@ -241,3 +241,100 @@ def camera_walk(room: Room, family: RoomFamily, frames: int, rng: np.random.Gene
     yaw = _rate_limit(_smooth(yaw, 2.0), math.radians(family.max_turn_deg))
     pitch = _rate_limit(np.clip(_smooth(pitch, 2.0), math.radians(-35), math.radians(12)), math.radians(2.0))
     return np.stack([look_at_pose(pos[i], float(yaw[i]), float(pitch[i])) for i in range(frames)])
+
+
+# ---- random viewpoints --------------------------------------------------------------------
+
+RANDOM_CLEARANCE_M = 0.3  # horizontal distance kept from walls and every floor-standing part
+RANDOM_HEIGHT_M = (0.6, 1.9)  # camera heights: from a crouch to a raised arm
+MIN_LOOK_M = 0.5  # nearest target distance
+NEAR_WALL_M = 0.3  # a view whose rays mostly stop closer than this sees only a wall or a part
+NEAR_SHARE = 0.3  # largest share of probe rays allowed to stop that close
+VIEW_TRIES = 60
+
+
+def _probe_dirs(pose: np.ndarray, hfov_deg: float, nx: int = 9, ny: int = 7) -> np.ndarray:
+    """World directions of an ``nx`` x ``ny`` grid of rays spread over a 4:3 image."""
+    half = math.tan(math.radians(hfov_deg) / 2)
+    u, v = np.meshgrid(np.linspace(-half, half, nx), np.linspace(-0.75 * half, 0.75 * half, ny))
+    cam = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=-1)
+    return cam @ pose[:3, :3].T
+
+
+def _random_target(room: Room, rng: np.random.Generator) -> np.ndarray:
+    """A point inside a random piece of furniture's bounds (three times in four) or anywhere in
+    the room below 2 m."""
+    if room.groups and rng.random() < 0.75:
+        lo, hi = room.groups[int(rng.integers(len(room.groups)))].aabb()
+        lo, hi = np.maximum(lo, 0.0), np.minimum(hi, room.hi)
+        return lo + rng.random(3) * (hi - lo)
+    return rng.random(3) * np.array([room.width, room.depth, min(2.0, room.height)])
+
+
+def random_views(room: Room, family: RoomFamily, frames: int, rng: np.random.Generator) -> np.ndarray:
+    """Poses (frames, 4, 4) spread at random through the room's free space, each looking at a
+    random target.
+
+    A camera stands anywhere at least ``RANDOM_CLEARANCE_M`` (horizontally) from the walls and
+    from every floor-standing part, at a height in ``RANDOM_HEIGHT_M`` (below the ceiling),
+    and looks at a target at least ``MIN_LOOK_M`` away with a small random roll. A pose whose
+    probe rays (a 9 x 7 grid over the view) mostly stop within ``NEAR_WALL_M`` (more than
+    ``NEAR_SHARE`` of them), or that sees nothing but wall, is drawn again (after
+    ``VIEW_TRIES`` draws the best one is kept). Consecutive frames are unrelated: this is a
+    capture from everywhere, not a walk.
+    """
+    from csa_core.data.synth.boxes import interior_exit
+    from csa_core.data.synth.render import room_solids
+
+    grid = room.floor
+    clear = grid.clearance()
+    free = clear >= RANDOM_CLEARANCE_M
+    if free.sum() < 4:
+        raise NoPathError("no free floor space for the camera")
+    cells = np.stack([grid.gx[free], grid.gy[free]], axis=-1)
+    solids, sources = room_solids(room)
+    is_wall = np.array([room.groups[gi].group.mount == "onwall" for gi, _ in sources] + [True], dtype=bool)
+    top = min(RANDOM_HEIGHT_M[1], room.height - 0.3)
+    poses = np.zeros((frames, 4, 4))
+    for i in range(frames):
+        best, best_score = None, np.inf
+        for _ in range(VIEW_TRIES):
+            xy = cells[rng.integers(len(cells))] + rng.uniform(-CELL_M / 2, CELL_M / 2, 2)
+            pos = np.array([xy[0], xy[1], rng.uniform(RANDOM_HEIGHT_M[0], top)])
+            target = _random_target(room, rng)
+            d = target - pos
+            if np.linalg.norm(d) < MIN_LOOK_M:
+                continue
+            yaw = math.atan2(d[1], d[0])
+            pitch = math.atan2(d[2], math.hypot(d[0], d[1]))
+            pose = look_at_pose(pos, yaw, pitch)
+            roll = float(np.clip(rng.normal(0.0, math.radians(4.0)), -0.2, 0.2))
+            c, s = math.cos(roll), math.sin(roll)
+            pose[:3, :2] = pose[:3, :2] @ np.array([[c, s], [-s, c]])
+            dirs = _probe_dirs(pose, family.hfov_deg)
+            t_shell, axis, _ = interior_exit(pos[None, :], dirs, room.lo, room.hi)
+            t, idx = solids.closest_hit(pos, dirs, t_shell)
+            dist = np.where(idx >= 0, t, t_shell) * np.linalg.norm(dirs, axis=1)
+            near = float(np.mean(dist < NEAR_WALL_M))
+            only_wall = bool(np.all(np.where(idx >= 0, is_wall[idx], axis != 2)))
+            score = near + (1.0 if only_wall else 0.0)
+            if near <= NEAR_SHARE and not only_wall:
+                best = pose
+                break
+            if score < best_score:
+                best, best_score = pose, score
+        if best is None:
+            raise NoPathError("no camera pose sees the room")
+        poses[i] = best
+    return poses
+
+
+CAPTURES = ("walk", "random")
+
+
+def capture_poses(room: Room, family: RoomFamily, frames: int, rng: np.random.Generator, capture: str = "walk") -> np.ndarray:
+    """Camera poses of a capture mode: "walk" (:func:`camera_walk`) or "random"
+    (:func:`random_views`)."""
+    if capture == "random":
+        return random_views(room, family, frames, rng)
+    return camera_walk(room, family, frames, rng)

@@ -22,7 +22,13 @@ Extents = tuple[tuple[float, float, float], tuple[float, float, float]]  # (min 
 
 @dataclass(frozen=True)
 class Part:
-    """One box of a group: centre and half-extents in the group frame, yaw about +z."""
+    """One solid of a group: centre and half-extents in the group frame, orientation
+    ``Rz(yaw) @ Rx(tilt)`` (yaw about +z after a tilt about the part's own x axis).
+
+    ``shape`` "box": a box with those half-extents. ``shape`` "rod": a capsule (round rod with
+    rounded ends, :mod:`csa_core.data.synth.solids`) of radius ``half[0]`` around a segment of
+    length ``2 * half[2]`` along the part's own z axis; make one with :func:`rod`.
+    """
 
     center: tuple[float, float, float]
     half: tuple[float, float, float]
@@ -30,6 +36,27 @@ class Part:
     role: str = "body"
     yaw: float = 0.0
     instance: int = 0  # parts of one group with the same (label, role, instance) share a material
+    tilt: float = 0.0
+    shape: str = "box"
+
+    def rotation(self) -> np.ndarray:
+        """Part-to-group rotation (3, 3)."""
+        cy, sy, ct, st = math.cos(self.yaw), math.sin(self.yaw), math.cos(self.tilt), math.sin(self.tilt)
+        return np.array([[cy, -sy * ct, sy * st], [sy, cy * ct, -cy * st], [0.0, st, ct]])
+
+    def extent(self) -> np.ndarray:
+        """Half-extents (3,) of the part's axis-aligned bounds in the group frame."""
+        rot = self.rotation()
+        if self.shape == "rod":
+            return np.abs(rot[:, 2]) * self.half[2] + self.half[0]
+        return np.abs(rot) @ np.asarray(self.half)
+
+    def planar_half(self) -> tuple[float, float]:
+        """Half-extents of the part's floor footprint along its own yawed x and y axes."""
+        ct, st = abs(math.cos(self.tilt)), abs(math.sin(self.tilt))
+        if self.shape == "rod":
+            return self.half[0], st * self.half[2] + self.half[0]
+        return self.half[0], ct * self.half[1] + st * self.half[2]
 
 
 @dataclass(frozen=True)
@@ -55,12 +82,45 @@ def box(x0: float, x1: float, y0: float, y1: float, z0: float, z1: float, label:
     return Part(((x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2), ((x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2), label, role, 0.0, instance)
 
 
+def rod(p0: tuple[float, float, float], p1: tuple[float, float, float], radius: float, label: str, role: str = "frame", instance: int = 0) -> Part:
+    """A round rod (capsule) of ``radius`` around the segment p0-p1; its rounded ends reach
+    ``radius`` beyond the end points."""
+    a, b = np.asarray(p0, dtype=np.float64), np.asarray(p1, dtype=np.float64)
+    d = b - a
+    length = float(np.linalg.norm(d))
+    u = d / length if length > 1e-12 else np.array([0.0, 0.0, 1.0])
+    tilt = math.acos(max(-1.0, min(1.0, float(u[2]))))
+    yaw = math.atan2(u[0], -u[1]) if math.sin(tilt) > 1e-9 else 0.0
+    centre = tuple(float(v) for v in (a + b) / 2)
+    return Part(centre, (radius, radius, length / 2), label, role, yaw, instance, tilt, "rod")
+
+
+def arc(centre: tuple[float, float, float], radius: float, a0: float, a1: float, plane: str, pieces: int, thickness: float, label: str, role: str = "frame", instance: int = 0) -> list[Part]:
+    """A curved rod: ``pieces`` capsules joined end to end along a circular arc of ``radius``
+    from angle ``a0`` to ``a1`` (radians) around ``centre``, in the "xy" (horizontal) or
+    "yz"/"xz" (vertical) plane; the joints are round, so the chain bends smoothly."""
+    ang = np.linspace(a0, a1, pieces + 1)
+    cx, cy, cz = centre
+    if plane == "xy":
+        pts = [(cx + radius * math.cos(t), cy + radius * math.sin(t), cz) for t in ang]
+    elif plane == "xz":
+        pts = [(cx + radius * math.cos(t), cy, cz + radius * math.sin(t)) for t in ang]
+    else:
+        pts = [(cx, cy + radius * math.cos(t), cz + radius * math.sin(t)) for t in ang]
+    return [rod(pts[k], pts[k + 1], thickness, label, role, instance) for k in range(pieces)]
+
+
+def slab(center: tuple[float, float, float], half: tuple[float, float, float], tilt: float, label: str, role: str = "body", instance: int = 0) -> Part:
+    """A box tilted by ``tilt`` radians about its own x axis (its top leans towards +y for a
+    positive tilt)."""
+    return Part(center, half, label, role, 0.0, instance, -tilt)
+
+
 def _parts_bounds(parts: tuple[Part, ...] | list[Part]) -> tuple[np.ndarray, np.ndarray]:
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     for p in parts:
-        c, s = abs(math.cos(p.yaw)), abs(math.sin(p.yaw))
-        ext = np.array([c * p.half[0] + s * p.half[1], s * p.half[0] + c * p.half[1], p.half[2]])
+        ext = p.extent()
         lo = np.minimum(lo, np.asarray(p.center) - ext)
         hi = np.maximum(hi, np.asarray(p.center) + ext)
     return lo, hi
@@ -99,46 +159,292 @@ def _u(rng: Rng, lo: float, hi: float) -> float:
 # ---- single pieces (front at -y, footprint centred) -------------------------------------
 
 
-def table_parts(rng: Rng, w: float, d: float, h: float, instance: int = 0) -> list[Part]:
-    """A table top on four legs."""
-    top, leg, inset = 0.04, _u(rng, 0.04, 0.07), 0.05
+TABLE_LEGS = ("square", "round", "hairpin")
+
+
+def table_parts(rng: Rng, w: float, d: float, h: float, instance: int = 0, legs: str | None = None) -> list[Part]:
+    """A table top 2-3.5 cm thick on four legs: square wooden legs 3.5-5 cm with an apron,
+    round metal legs 2.4-3.2 cm across, or hairpin legs (two 1.2 cm rods in a V each)."""
+    legs = legs or str(rng.choice(TABLE_LEGS, p=(0.45, 0.35, 0.2)))
+    top = _u(rng, 0.02, 0.035)
     parts = [box(-w / 2, w / 2, -d / 2, d / 2, h - top, h, "table", "top", instance)]
+    inset = _u(rng, 0.03, 0.08)
     for sx in (-1, 1):
         for sy in (-1, 1):
-            x = sx * (w / 2 - inset - leg / 2)
+            if legs == "square":
+                leg = _u(rng, 0.035, 0.05) if sx == sy == -1 else parts[1].half[0] * 2
+                x, y = sx * (w / 2 - inset - leg / 2), sy * (d / 2 - inset - leg / 2)
+                parts.append(box(x - leg / 2, x + leg / 2, y - leg / 2, y + leg / 2, 0.0, h - top, "table", "frame", instance))
+            elif legs == "round":
+                r = _u(rng, 0.012, 0.016) if sx == sy == -1 else parts[1].half[0]
+                x, y = sx * (w / 2 - inset - r), sy * (d / 2 - inset - r)
+                parts.append(rod((x, y, r), (x, y, h - top - r), r, "table", "frame", instance))
+            else:
+                r = 0.006
+                x, y = sx * (w / 2 - inset - r), sy * (d / 2 - inset - r)
+                foot = (x, y, r)
+                for dx in (0.0, 0.12):
+                    parts.append(rod(foot, (x - sx * dx, y, h - top - r), r, "table", "frame", instance))
+    if legs == "square":
+        apron, t = _u(rng, 0.06, 0.1), 0.02
+        leg = parts[1].half[0] * 2
+        xi, yi = w / 2 - inset - leg, d / 2 - inset - leg
+        for sy in (-1, 1):
             y = sy * (d / 2 - inset - leg / 2)
-            parts.append(box(x - leg / 2, x + leg / 2, y - leg / 2, y + leg / 2, 0.0, h - top, "table", "frame", instance))
+            parts.append(box(-xi, xi, y - t / 2, y + t / 2, h - top - apron, h - top, "table", "frame", instance))
+        for sx in (-1, 1):
+            x = sx * (w / 2 - inset - leg / 2)
+            parts.append(box(x - t / 2, x + t / 2, -yi, yi, h - top - apron, h - top, "table", "frame", instance))
     return parts
 
 
-def chair_parts(rng: Rng, instance: int = 0) -> list[Part]:
-    """Seat, backrest at +y and four legs; about 0.45 m wide."""
-    w, d = _u(rng, 0.42, 0.50), _u(rng, 0.42, 0.48)
-    seat_h, seat_t = _u(rng, 0.44, 0.48), 0.05
-    back_h, back_t, leg = _u(rng, 0.35, 0.5), 0.04, 0.035
-    parts = [
-        box(-w / 2, w / 2, -d / 2, d / 2, seat_h - seat_t, seat_h, "chair", "body", instance),
-        box(-w / 2, w / 2, d / 2 - back_t, d / 2, seat_h, seat_h + back_h, "chair", "body", instance),
-    ]
+CHAIR_STYLES = ("slat", "ladder", "spindle", "tube", "upholstered")
+
+
+def chair_design(rng: Rng, style: str | None = None) -> dict:
+    """Proportions of one chair model (a dining set repeats it): style, seat size and height,
+    back height and lean, leg and slat sizes."""
+    style = style or str(rng.choice(CHAIR_STYLES, p=(0.25, 0.15, 0.2, 0.2, 0.2)))
+    return {
+        "style": style,
+        "w": _u(rng, 0.40, 0.48),
+        "d": _u(rng, 0.40, 0.46),
+        "seat_h": _u(rng, 0.44, 0.47),
+        "seat_t": _u(rng, 0.05, 0.07) if style == "upholstered" else _u(rng, 0.02, 0.035),
+        "back_h": _u(rng, 0.38, 0.5),
+        "lean": math.radians(_u(rng, 6.0, 14.0)),
+        "leg": _u(rng, 0.022, 0.03),  # square leg side, or rod diameter
+        "slats": int(rng.integers(3, 6)),
+        "slat_w": _u(rng, 0.02, 0.045),
+        "rails": int(rng.integers(2, 5)),
+        "spindles": int(rng.integers(5, 8)),
+        "spindle_r": _u(rng, 0.006, 0.009),
+        "stretchers": bool(rng.random() < 0.6),
+    }
+
+
+def _back_point(y0: float, z0: float, lean: float, s: float) -> tuple[float, float]:
+    """(y, z) at distance ``s`` up a chair back leaning back by ``lean`` from (y0, z0)."""
+    return y0 + s * math.sin(lean), z0 + s * math.cos(lean)
+
+
+def chair_parts(rng: Rng, instance: int = 0, design: dict | None = None) -> list[Part]:
+    """A chair, front at -y, about 0.45 m wide: a seat on legs 2-3 cm thick and a back leaning
+    back 6-14 degrees that is open: vertical slats, horizontal rails or round spindles under a
+    curved crest rail with gaps between them, a metal tube frame holding a back panel above the
+    seat, or (upholstered) a padded back on thin legs."""
+    g = design or chair_design(rng)
+    style, w, d, sh, st = g["style"], g["w"], g["d"], g["seat_h"], g["seat_t"]
+    back_h, lean, leg = g["back_h"], g["lean"], g["leg"]
+    soft = "soft" if style == "upholstered" else "body"
+    parts = [box(-w / 2, w / 2, -d / 2, d / 2, sh - st, sh, "chair", soft, instance)]
+    r = leg / 2
+    under = sh - st
+    yb = d / 2 - 0.015 - r  # back legs and posts
+    if style == "spindle":
+        splay = 0.035
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                top = (sx * (w / 2 - 0.06), sy * (d / 2 - 0.06), under - r)
+                parts.append(rod((top[0] + sx * splay, top[1] + sy * splay, r), top, r, "chair", "frame", instance))
+        if g["stretchers"]:
+            z = 0.16
+            for sx in (-1, 1):
+                x = sx * (w / 2 - 0.06 + splay * (1 - z / under))
+                parts.append(rod((x, -(d / 2 - 0.06) - 0.02, z), (x, d / 2 - 0.06 + 0.02, z), 0.008, "chair", "frame", instance))
+        # Crest rail: a horizontal bow whose middle sits back_h above the seat, leaning back.
+        rr = g["spindle_r"]
+        yc, zc = _back_point(d / 2 - 0.05, sh, lean, back_h)
+        bow_r = _u(rng, 0.45, 0.7)
+        half_ang = math.asin(min(0.95, (w / 2 - 0.02) / bow_r))
+        centre = (0.0, yc - bow_r, zc)
+        parts += arc(centre, bow_r, math.pi / 2 - half_ang, math.pi / 2 + half_ang, "xy", 6, 0.014, "chair", "frame", instance)
+        n = g["spindles"]
+        for k in range(n):
+            ang = math.pi / 2 - half_ang + (k + 0.5) / n * 2 * half_ang
+            x_top, y_top = bow_r * math.cos(ang), yc - bow_r + bow_r * math.sin(ang)
+            x_bot = x_top * 0.85
+            parts.append(rod((x_bot, d / 2 - 0.05 - (yc - y_top), sh + rr), (x_top, y_top, zc), rr, "chair", "frame", instance))
+        return parts
+    if style == "tube":
+        rt = max(0.009, min(0.012, r))
+        for sx in (-1, 1):
+            x = sx * (w / 2 - 0.02)
+            parts.append(rod((x, -(d / 2 - 0.02), rt), (x, -(d / 2 - 0.02), under - rt), rt, "chair", "frame", instance))
+            # Rear leg and back post: one bent tube, vertical under the seat, leaning above it.
+            parts.append(rod((x, d / 2 - 0.02, rt), (x, d / 2 - 0.02, sh), rt, "chair", "frame", instance))
+            yt, zt = _back_point(d / 2 - 0.02, sh, lean, back_h)
+            parts.append(rod((x, d / 2 - 0.02, sh), (x, yt, zt), rt, "chair", "frame", instance))
+        panel_h = _u(rng, 0.14, 0.22)
+        s0 = back_h - panel_h
+        y_mid, z_mid = _back_point(d / 2 - 0.02 - rt - 0.008, sh, lean, s0 + panel_h / 2)
+        parts.append(Part((0.0, y_mid, z_mid), (w / 2 - 0.02 - rt, 0.007, panel_h / 2), "chair", "body", 0.0, instance, -lean))
+        return parts
+    # Square legs; the back legs continue as posts leaning back above the seat.
     for sx in (-1, 1):
-        for sy in (-1, 1):
-            x, y = sx * (w / 2 - leg / 2 - 0.01), sy * (d / 2 - leg / 2 - 0.01)
-            parts.append(box(x - leg / 2, x + leg / 2, y - leg / 2, y + leg / 2, 0.0, seat_h - seat_t, "chair", "frame", instance))
+        x = sx * (w / 2 - 0.015 - r)
+        parts.append(box(x - r, x + r, -d / 2 + 0.015, -d / 2 + 0.015 + leg, 0.0, under, "chair", "frame", instance))
+        parts.append(box(x - r, x + r, yb - r, yb + r, 0.0, under, "chair", "frame", instance))
+        y_mid, z_mid = _back_point(yb, sh, lean, back_h / 2)
+        parts.append(Part((x, y_mid, z_mid), (r, r, back_h / 2), "chair", "frame", 0.0, instance, -lean))
+        if g["stretchers"]:
+            parts.append(rod((x, -d / 2 + 0.03 + leg, 0.15), (x, yb - r - 0.01, 0.15), 0.008, "chair", "frame", instance))
+    inner = w / 2 - 0.015 - leg  # between the posts
+    t = 0.018
+    if style == "upholstered":
+        y_mid, z_mid = _back_point(yb, sh, lean, 0.08 + (back_h - 0.08) / 2)
+        parts.append(Part((0.0, y_mid, z_mid), (inner, 0.03, (back_h - 0.08) / 2), "chair", soft, 0.0, instance, -lean))
+        return parts
+    crest = _u(rng, 0.05, 0.09)
+    y_mid, z_mid = _back_point(yb, sh, lean, back_h - crest / 2)
+    parts.append(Part((0.0, y_mid, z_mid), (inner, t / 2, crest / 2), "chair", "body", 0.0, instance, -lean))
+    if style == "ladder":
+        n = g["rails"]
+        for k in range(n):
+            s = 0.1 + k * (back_h - crest - 0.1) / n
+            y_mid, z_mid = _back_point(yb, sh, lean, s + 0.02)
+            parts.append(Part((0.0, y_mid, z_mid), (inner, t / 2, 0.02), "chair", "body", 0.0, instance, -lean))
+        return parts
+    rail = 0.04
+    y_mid, z_mid = _back_point(yb, sh, lean, 0.08 + rail / 2)
+    parts.append(Part((0.0, y_mid, z_mid), (inner, t / 2, rail / 2), "chair", "body", 0.0, instance, -lean))
+    n, sw = g["slats"], g["slat_w"]
+    slat_h = back_h - crest - 0.08 - rail
+    xs = np.linspace(-inner, inner, n + 2)[1:-1]
+    for x in xs:
+        y_mid, z_mid = _back_point(yb, sh, lean, 0.08 + rail + slat_h / 2)
+        parts.append(Part((float(x), y_mid, z_mid), (min(sw / 2, inner / (n + 1) / 2 - 0.004), t / 2 - 0.002, slat_h / 2), "chair", "body", 0.0, instance, -lean))
+    return parts
+
+
+def office_chair_parts(rng: Rng, instance: int = 0) -> list[Part]:
+    """A swivel chair, front at -y: five castors on a five-star base of 1.5-2 cm spokes, a
+    gas lift, a padded seat, a back leaning 10-18 degrees on a curved bar, often armrests on
+    thin posts."""
+    base_r, castor = _u(rng, 0.28, 0.32), _u(rng, 0.022, 0.027)
+    spoke = _u(rng, 0.008, 0.011)
+    hub_z = 2 * castor + 0.045
+    spin = _u(rng, 0.0, 2 * math.pi / 5)
+    parts = []
+    for k in range(5):
+        a = spin + 2 * math.pi * k / 5
+        c, s = math.cos(a), math.sin(a)
+        parts.append(rod((0.02 * c, 0.02 * s, hub_z), (base_r * c, base_r * s, 2 * castor + spoke), spoke, "chair", "frame", instance))
+        parts.append(rod((base_r * c, base_r * s, castor), (base_r * c, base_r * s, castor), castor, "chair", "frame", instance))
+    w, d, sh, st = _u(rng, 0.46, 0.52), _u(rng, 0.44, 0.5), _u(rng, 0.44, 0.52), _u(rng, 0.06, 0.09)
+    lift = _u(rng, 0.022, 0.028)
+    parts.append(rod((0.0, 0.0, hub_z - 0.02), (0.0, 0.0, sh - st - 0.05 - lift), lift, "chair", "frame", instance))
+    parts.append(box(-0.1, 0.1, -0.12, 0.12, sh - st - 0.05, sh - st, "chair", "frame", instance))
+    parts.append(box(-w / 2, w / 2, -d / 2, d / 2, sh - st, sh, "chair", "soft", instance))
+    lean = math.radians(_u(rng, 10.0, 18.0))
+    back_h, gap = _u(rng, 0.42, 0.62), _u(rng, 0.06, 0.14)
+    bw, bt = w * _u(rng, 0.85, 0.98), _u(rng, 0.04, 0.06)
+    yb = d / 2 + 0.04
+    y_mid, z_mid = _back_point(yb, sh, lean, gap + back_h / 2)
+    parts.append(Part((0.0, y_mid, z_mid), (bw / 2, bt / 2, back_h / 2), "chair", "soft", 0.0, instance, -lean))
+    # The support: a bar bent in a quarter circle from under the seat up behind the back.
+    y_low, z_low = _back_point(yb + bt / 2 + 0.012, sh, lean, gap + 0.06)
+    bend = z_low - (sh - st - 0.03)
+    parts += arc((0.0, y_low - bend, z_low), bend, 0.0, -math.pi / 2, "yz", 4, 0.012, "chair", "frame", instance)
+    parts.append(rod((0.0, y_low - bend, sh - st - 0.03), (0.0, 0.1, sh - st - 0.03), 0.012, "chair", "frame", instance))
+    if rng.random() < 0.7:
+        arm_h = _u(rng, 0.18, 0.25)
+        for sx in (-1, 1):
+            x = sx * (w / 2 + 0.03)
+            parts.append(rod((x, 0.05, sh - st - 0.01), (x, 0.05, sh + arm_h - 0.012), 0.011, "chair", "frame", instance))
+            parts.append(box(x - 0.035, x + 0.035, -0.1, 0.15, sh + arm_h, sh + arm_h + 0.03, "chair", "soft", instance))
+    return parts
+
+
+def stool_parts(rng: Rng, instance: int = 0, bar: bool | None = None) -> list[Part]:
+    """A stool: a seat board on four splayed round legs 2-3 cm across joined by a foot ring
+    of thin rungs; a bar stool (65-78 cm) or a low one (45 cm)."""
+    bar = bool(rng.random() < 0.6) if bar is None else bar
+    h = _u(rng, 0.65, 0.78) if bar else _u(rng, 0.43, 0.48)
+    side, t = _u(rng, 0.3, 0.38), _u(rng, 0.025, 0.04)
+    r, splay = _u(rng, 0.01, 0.015), _u(rng, 0.04, 0.07) * (h / 0.7)
+    parts = [box(-side / 2, side / 2, -side / 2, side / 2, h - t, h, "chair", "body", instance)]
+    inner = side / 2 - 0.04
+    feet = []
+    for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+        top = (sx * inner, sy * inner, h - t - r)
+        foot = (sx * (inner + splay), sy * (inner + splay), r)
+        parts.append(rod(foot, top, r, "chair", "frame", instance))
+        feet.append((np.asarray(foot), np.asarray(top)))
+    z = _u(rng, 0.22, 0.3) if bar else 0.15
+    ring = [f + (tp - f) * ((z - f[2]) / (tp[2] - f[2])) for f, tp in feet]
+    for k in range(4):
+        parts.append(rod(tuple(ring[k]), tuple(ring[(k + 1) % 4]), 0.008, "chair", "frame", instance))
     return parts
 
 
 def lamp_parts(rng: Rng, floor: bool, z0: float = 0.0, instance: int = 0) -> list[Part]:
-    """A lamp: base, pole and shade; a floor lamp or a small table lamp standing at ``z0``."""
-    if floor:
-        base, pole_h, shade_w, shade_h = _u(rng, 0.25, 0.35), _u(rng, 1.2, 1.5), _u(rng, 0.3, 0.45), _u(rng, 0.25, 0.35)
-    else:
+    """A lamp standing at ``z0``: a floor lamp (a 2-2.6 cm pole on a thin round base or on
+    three splayed legs, under a shade) or a small table lamp on a thin stem."""
+    frame = "frame"
+    if not floor:
         base, pole_h, shade_w, shade_h = _u(rng, 0.1, 0.15), _u(rng, 0.2, 0.3), _u(rng, 0.18, 0.25), _u(rng, 0.14, 0.2)
-    pole = 0.025 if floor else 0.02
-    return [
-        box(-base / 2, base / 2, -base / 2, base / 2, z0, z0 + 0.03, "lamp", "frame", instance),
-        box(-pole / 2, pole / 2, -pole / 2, pole / 2, z0 + 0.03, z0 + 0.03 + pole_h, "lamp", "frame", instance),
-        box(-shade_w / 2, shade_w / 2, -shade_w / 2, shade_w / 2, z0 + 0.03 + pole_h, z0 + 0.03 + pole_h + shade_h, "lamp", "shade", instance),
-    ]
+        r = _u(rng, 0.006, 0.01)
+        return [
+            box(-base / 2, base / 2, -base / 2, base / 2, z0, z0 + 0.02, "lamp", frame, instance),
+            rod((0.0, 0.0, z0 + 0.02), (0.0, 0.0, z0 + 0.02 + pole_h), r, "lamp", frame, instance),
+            box(-shade_w / 2, shade_w / 2, -shade_w / 2, shade_w / 2, z0 + 0.02 + pole_h, z0 + 0.02 + pole_h + shade_h, "lamp", "shade", instance),
+        ]
+    pole_h, shade_w, shade_h = _u(rng, 1.25, 1.5), _u(rng, 0.3, 0.45), _u(rng, 0.25, 0.35)
+    r = _u(rng, 0.01, 0.013)
+    if rng.random() < 0.5:
+        base = _u(rng, 0.25, 0.32)
+        parts = [box(-base / 2, base / 2, -base / 2, base / 2, z0, z0 + 0.015, "lamp", frame, instance)]
+        z_pole = z0 + 0.015
+    else:
+        z_pole = z0 + _u(rng, 0.5, 0.7)
+        spread = _u(rng, 0.2, 0.28)
+        parts = []
+        for k in range(3):
+            a = 2 * math.pi * k / 3 + 0.3
+            parts.append(rod((spread * math.cos(a), spread * math.sin(a), z0 + 0.01), (0.0, 0.0, z_pole), 0.01, "lamp", frame, instance))
+    parts.append(rod((0.0, 0.0, z_pole), (0.0, 0.0, z0 + pole_h), r, "lamp", frame, instance))
+    parts.append(box(-shade_w / 2, shade_w / 2, -shade_w / 2, shade_w / 2, z0 + pole_h + r, z0 + pole_h + r + shade_h, "lamp", "shade", instance))
+    return parts
+
+
+def arc_lamp(rng: Rng) -> Group:
+    """An arc floor lamp: a heavy base, a 2.4 cm rod rising and curving over in a wide arc,
+    and a round shade hanging at its end."""
+    base, reach = _u(rng, 0.3, 0.38), _u(rng, 0.8, 1.2)
+    rise, r = _u(rng, 1.0, 1.3), 0.012
+    parts = [box(-base / 2, base / 2, -base / 2, base / 2, 0.0, 0.05, "lamp", "frame")]
+    bend = reach / 2
+    parts.append(rod((0.0, 0.0, 0.05), (0.0, 0.0, rise), r, "lamp", "frame"))
+    parts += arc((0.0, -bend, rise), bend, 0.0, math.pi * 0.85, "yz", 8, r, "lamp", "frame")
+    tip_y, tip_z = -bend + bend * math.cos(math.pi * 0.85), rise + bend * math.sin(math.pi * 0.85)
+    shade_r = _u(rng, 0.14, 0.2)
+    parts.append(rod((0.0, tip_y, tip_z - r - shade_r), (0.0, tip_y, tip_z - r - shade_r), shade_r, "lamp", "shade"))
+    return make_group("arc_lamp", parts, "wall")
+
+
+def plant(rng: Rng) -> Group:
+    """A potted plant (NYU40 "otherprop"): a pot, thin stems 1-2 cm fanning out and leaves
+    on them, or a small tree with a trunk and thin branches."""
+    pot_w, pot_h = _u(rng, 0.22, 0.4), _u(rng, 0.22, 0.4)
+    parts = [box(-pot_w / 2, pot_w / 2, -pot_w / 2, pot_w / 2, 0.0, pot_h, "otherprop", "body")]
+    tree = rng.random() < 0.4
+    if tree:
+        height = _u(rng, 1.3, 1.8)
+        parts.append(rod((0.0, 0.0, pot_h + 0.01), (0.0, 0.0, height * 0.6), 0.012, "otherprop", "stem"))
+        starts = [(0.0, 0.0, height * _u(rng, 0.4, 0.6)) for _ in range(int(rng.integers(4, 7)))]
+        length = (0.35, 0.6)
+    else:
+        starts = [(0.0, 0.0, pot_h + 0.01) for _ in range(int(rng.integers(6, 11)))]
+        length = (0.3, 0.6)
+    for p0 in starts:
+        a, up = _u(rng, 0, 2 * math.pi), _u(rng, 0.3, 1.2)
+        ln = _u(rng, *length)
+        tip = (p0[0] + ln * math.cos(up) * math.cos(a), p0[1] + ln * math.cos(up) * math.sin(a), p0[2] + ln * math.sin(up))
+        parts.append(rod(p0, tip, _u(rng, 0.004, 0.008), "otherprop", "stem"))
+        lw, ll = _u(rng, 0.04, 0.09), _u(rng, 0.12, 0.22)
+        parts.append(Part(tip, (lw / 2, 0.003, ll / 2), "otherprop", "leaf", a + math.pi / 2, 0, _u(rng, 0.3, 1.2)))
+    return make_group("plant", parts, "wall")
 
 
 def book_rows(rng: Rng, x0: float, x1: float, y0: float, y1: float, z0: float, max_h: float, instance: int = 0) -> list[Part]:
@@ -178,47 +484,127 @@ def cardboard_boxes(rng: Rng, x0: float, x1: float, y0: float, y1: float, z0: fl
 
 
 def dining_set(rng: Rng) -> Group:
-    """A table with chairs around it facing it, free-standing."""
+    """A table with matching chairs around it facing it, free-standing."""
     w, d = _u(rng, 1.0, 1.8), _u(rng, 0.75, 1.0)
     parts = table_parts(rng, w, d, _u(rng, 0.72, 0.77))
+    design = chair_design(rng)
     per_side = 2 if w > 1.35 else 1
     inst = 1
     for side in (-1, 1):
         xs = np.linspace(-w / 4, w / 4, per_side) if per_side == 2 else [0.0]
         for x in xs:
             if rng.random() < 0.85:
-                chair = chair_parts(rng, inst)
                 yaw = (0.0 if side > 0 else math.pi) + _u(rng, -0.2, 0.2)
-                parts += moved(chair, float(x), side * (d / 2 + 0.36), yaw)
+                parts += moved(chair_parts(rng, inst, design), float(x), side * (d / 2 + 0.38), yaw)
                 inst += 1
     if rng.random() < 0.5:
-        parts += moved(chair_parts(rng, inst), -(w / 2 + 0.36), 0.0, math.pi / 2 + _u(rng, -0.2, 0.2))
+        parts += moved(chair_parts(rng, inst, design), -(w / 2 + 0.38), 0.0, math.pi / 2 + _u(rng, -0.2, 0.2))
     return make_group("dining", parts, "free")
 
 
-def desk_set(rng: Rng) -> Group:
-    """A desk against a wall, its chair in front, a lamp, books or a box on top."""
-    w, d, h = _u(rng, 1.1, 1.6), _u(rng, 0.6, 0.75), _u(rng, 0.72, 0.76)
-    t, side = 0.03, 0.03
-    parts = [
-        box(-w / 2, w / 2, -d / 2, d / 2, h - t, h, "desk", "top"),
+def dining_by_wall(rng: Rng) -> Group:
+    """A smaller dining table pushed against a wall with two to four matching chairs on its
+    free sides: where a free-standing set does not fit (``FALLBACKS``)."""
+    w, d = _u(rng, 0.8, 1.3), _u(rng, 0.65, 0.85)
+    parts = table_parts(rng, w, d, _u(rng, 0.72, 0.77))
+    design = chair_design(rng)
+    spots = [(x, -(d / 2 + 0.38), math.pi) for x in ((-w / 4, w / 4) if w > 1.05 else (0.0,))]
+    spots += [(sx * (w / 2 + 0.38), 0.0, -sx * math.pi / 2) for sx in (-1, 1)]
+    inst = 1
+    for x, y, yaw in spots:
+        if inst == 1 or rng.random() < 0.75:
+            parts += moved(chair_parts(rng, inst, design), x, y, yaw + _u(rng, -0.15, 0.15))
+            inst += 1
+    return make_group("dining", parts, "wall")
+
+
+def meeting_set(rng: Rng) -> Group:
+    """A meeting table on thin legs with four to eight swivel chairs (or metal tube chairs)
+    around it, free-standing."""
+    w, d = _u(rng, 1.6, 2.4), _u(rng, 0.9, 1.1)
+    parts = table_parts(rng, w, d, _u(rng, 0.72, 0.76), legs=str(rng.choice(["round", "square"])))
+    swivel = rng.random() < 0.75
+    design = chair_design(rng, "tube")
+    per_side = 3 if w > 2.0 else 2
+    inst = 1
+    for side in (-1, 1):
+        for x in np.linspace(-w / 3, w / 3, per_side):
+            if rng.random() < 0.9:
+                yaw = (0.0 if side > 0 else math.pi) + _u(rng, -0.3, 0.3)
+                chair = office_chair_parts(rng, inst) if swivel else chair_parts(rng, inst, design)
+                parts += moved(chair, float(x), side * (d / 2 + 0.45), yaw)
+                inst += 1
+    return make_group("meeting", parts, "free")
+
+
+def loose_chairs(rng: Rng) -> Group:
+    """One or two chairs standing on their own by a wall, facing into the room."""
+    swivel = rng.random() < 0.4
+    design = chair_design(rng)
+    parts: list[Part] = []
+    for k in range(int(rng.integers(1, 3))):
+        chair = office_chair_parts(rng, k) if swivel else chair_parts(rng, k, design)
+        parts += moved(chair, 0.75 * k, _u(rng, -0.1, 0.1), _u(rng, -0.6, 0.6))
+    return make_group("chairs", parts, "wall")
+
+
+def stool_row(rng: Rng) -> Group:
+    """Two to four stools of one kind in a row."""
+    bar = bool(rng.random() < 0.6)
+    parts: list[Part] = []
+    model = int(rng.integers(2**31))  # one model: every stool is built from the same draws
+    for k in range(int(rng.integers(2, 5))):
+        parts += moved(stool_parts(np.random.default_rng(model), k, bar), 0.55 * k, 0.0, _u(rng, -0.4, 0.4))
+    return make_group("stools", parts, "wall")
+
+
+def _desk_top(rng: Rng, w: float, d: float, h: float, frame: bool) -> list[Part]:
+    """A desk: a top on two side panels (sometimes a drawer unit), or on a metal frame of
+    square legs 2.5-3.5 cm with a rear crossbar."""
+    t = _u(rng, 0.02, 0.035)
+    parts = [box(-w / 2, w / 2, -d / 2, d / 2, h - t, h, "desk", "top")]
+    if frame:
+        leg = _u(rng, 0.025, 0.035)
+        for sx in (-1, 1):
+            x = sx * (w / 2 - 0.04 - leg / 2)
+            for sy in (-1, 1):
+                y = sy * (d / 2 - 0.04 - leg / 2)
+                parts.append(box(x - leg / 2, x + leg / 2, y - leg / 2, y + leg / 2, 0.0, h - t, "desk", "body"))
+            parts.append(box(x - leg / 2, x + leg / 2, -d / 2 + 0.04 + leg, d / 2 - 0.04 - leg, 0.05, 0.05 + leg, "desk", "body"))
+        x_in = w / 2 - 0.04 - leg
+        y = d / 2 - 0.04 - leg / 2
+        parts.append(rod((-x_in + 0.011, y, h - t - 0.1), (x_in - 0.011, y, h - t - 0.1), 0.011, "desk", "body"))
+        return parts
+    side = _u(rng, 0.018, 0.03)
+    parts += [
         box(-w / 2, -w / 2 + side, -d / 2 + 0.02, d / 2, 0.0, h - t, "desk", "body"),
         box(w / 2 - side, w / 2, -d / 2 + 0.02, d / 2, 0.0, h - t, "desk", "body"),
     ]
     if rng.random() < 0.6:
         dw = _u(rng, 0.35, 0.45)
         parts.append(box(w / 2 - side - dw, w / 2 - side - 0.005, -d / 2 + 0.03, d / 2, h - t - 0.45, h - t, "desk", "body"))
+    return parts
+
+
+def desk_set(rng: Rng, office: bool = False) -> Group:
+    """A desk against a wall, its chair in front (a swivel chair in an office), a lamp,
+    books, a screen."""
+    w, d, h = _u(rng, 1.1, 1.6), _u(rng, 0.6, 0.75), _u(rng, 0.72, 0.76)
+    parts = _desk_top(rng, w, d, h, frame=rng.random() < (0.7 if office else 0.4))
     side_sign = float(rng.choice([-1, 1]))
     if rng.random() < 0.7:
         parts += moved(lamp_parts(rng, floor=False, z0=h), side_sign * (w / 2 - 0.15), d / 2 - 0.15)
     if rng.random() < 0.7:
         edge = -side_sign * (w / 2 - 0.03)
         parts += book_rows(rng, min(edge, edge + 0.3 * side_sign), max(edge, edge + 0.3 * side_sign), d / 2 - 0.28, d / 2 - 0.02, h, 0.3)
-    if w >= 1.3 and rng.random() < 0.6:
+    if (w >= 1.3 or office) and rng.random() < (0.85 if office else 0.6):
         parts.append(box(-0.25, 0.25, d / 2 - 0.12, d / 2 - 0.04, h + 0.1, h + 0.42, "television", "screen"))
         parts.append(box(-0.04, 0.04, d / 2 - 0.1, d / 2 - 0.06, h, h + 0.1, "television", "frame"))
-    chair = chair_parts(rng, 1)
-    parts += moved(chair, _u(rng, -0.15, 0.15), -d / 2 - 0.33, math.pi + _u(rng, -0.35, 0.35))
+    if office or rng.random() < 0.3:
+        chair, gap = office_chair_parts(rng, 1), 0.42
+    else:
+        chair, gap = chair_parts(rng, 1), 0.36
+    parts += moved(chair, _u(rng, -0.12, 0.12), -d / 2 - gap, math.pi + _u(rng, -0.35, 0.35))
     return make_group("desk", parts, "wall")
 
 
@@ -280,24 +666,48 @@ def sofa_set(rng: Rng) -> Group:
 
 
 def bookshelf(rng: Rng) -> Group:
-    """A bookshelf: sides, back, boards and runs of books on each board."""
+    """A bookshelf: sides and boards 1.8-2.5 cm thick, a thin back, runs of books."""
     w, d, h = _u(rng, 0.8, 1.3), _u(rng, 0.3, 0.38), _u(rng, 1.7, 2.05)
-    t = 0.025
+    t = _u(rng, 0.018, 0.025)
     y0, y1 = -d / 2, d / 2
     parts = [
         box(-w / 2, -w / 2 + t, y0, y1, 0.0, h, "bookshelf"),
         box(w / 2 - t, w / 2, y0, y1, 0.0, h, "bookshelf"),
-        box(-w / 2 + t, w / 2 - t, y1 - 0.012, y1, 0.0, h, "bookshelf"),
+        box(-w / 2 + t, w / 2 - t, y1 - 0.008, y1, 0.0, h, "bookshelf"),
     ]
     n_boards = int(rng.integers(4, 6))
     levels = np.linspace(0.06, h - t, n_boards + 1)
     gap = levels[1] - levels[0]
     for k, z in enumerate(levels):
-        parts.append(box(-w / 2 + t, w / 2 - t, y0, y1 - 0.012, z, z + t, "bookshelf"))
+        parts.append(box(-w / 2 + t, w / 2 - t, y0, y1 - 0.008, z, z + t, "bookshelf"))
         if k < n_boards and rng.random() < 0.9:
-            parts += book_rows(rng, -w / 2 + t + 0.01, w / 2 - t - 0.01, y1 - 0.012 - 0.25, y1 - 0.013, z + t, gap - t - 0.03, k)
-    parts.append(box(-w / 2 + t, w / 2 - t, y0, y1 - 0.012, 0.0, 0.06, "bookshelf"))
+            parts += book_rows(rng, -w / 2 + t + 0.01, w / 2 - t - 0.01, y1 - 0.008 - 0.25, y1 - 0.009, z + t, gap - t - 0.03, k)
+    parts.append(box(-w / 2 + t, w / 2 - t, y0, y1 - 0.008, 0.0, 0.06, "bookshelf"))
     return make_group("bookshelf", parts, "wall")
+
+
+def ladder_shelf(rng: Rng) -> Group:
+    """A ladder shelf leaning against the wall (NYU40 "shelves"): two side rails 2.5-3.5 cm
+    tilted 8-14 degrees and four or five boards 1.5-2 cm thick, shallower towards the top,
+    open at the back and sides, with a few boxes or books on them."""
+    w, h, lean = _u(rng, 0.6, 0.9), _u(rng, 1.6, 1.9), math.radians(_u(rng, 8.0, 14.0))
+    rail, t = _u(rng, 0.025, 0.035), _u(rng, 0.015, 0.02)
+    depth0 = _u(rng, 0.3, 0.4)
+    half_len = (h - rail * math.sin(lean)) / (2 * math.cos(lean))  # square ends stay in [0, h]
+    y_foot = -h * math.tan(lean)  # the feet stand forward; the tops rest on the wall at y = 0
+    parts = []
+    for sx in (-1, 1):
+        x = sx * (w / 2 - rail / 2)
+        parts.append(slab((x, y_foot / 2 - rail / 2, h / 2), (rail / 2, rail / 2, half_len), lean, "shelves", "frame"))
+    n = int(rng.integers(4, 6))
+    for k in range(n):
+        z = 0.15 + k * (h - 0.35) / (n - 1)
+        y_rail = y_foot * (1 - z / h) - rail / 2
+        dep = depth0 * (1 - 0.6 * k / max(1, n - 1))
+        parts.append(box(-w / 2 + rail, w / 2 - rail, y_rail - dep, y_rail + rail / 2, z, z + t, "shelves"))
+        if rng.random() < 0.5:
+            parts += book_rows(rng, -w / 2 + rail + 0.01, w / 2 - rail - 0.01, y_rail - dep + 0.01, y_rail, z + t, 0.25, k)
+    return make_group("ladder_shelf", parts, "wall")
 
 
 def cabinet_tv(rng: Rng) -> Group:
@@ -349,20 +759,21 @@ def kitchen(rng: Rng) -> Group:
 
 
 def shelving(rng: Rng) -> Group:
-    """A metal shelving unit: four posts, boards and boxes on them."""
+    """A metal shelving unit: four round posts 2-2.5 cm across, boards 1.8-2.5 cm thick
+    and boxes on them."""
     w, d, h = _u(rng, 0.9, 1.8), _u(rng, 0.4, 0.6), _u(rng, 1.5, 2.0)
-    post, t = 0.04, 0.02
+    r, t = _u(rng, 0.01, 0.0125), _u(rng, 0.018, 0.025)
     parts = []
     for sx in (-1, 1):
         for sy in (-1, 1):
-            x, y = sx * (w / 2 - post / 2), sy * (d / 2 - post / 2)
-            parts.append(box(x - post / 2, x + post / 2, y - post / 2, y + post / 2, 0.0, h, "shelves", "frame"))
+            x, y = sx * (w / 2 - r), sy * (d / 2 - r)
+            parts.append(rod((x, y, r), (x, y, h - r), r, "shelves", "frame"))
     n = int(rng.integers(3, 5))
     levels = np.linspace(0.1, h - t, n + 1)
     for k, z in enumerate(levels):
-        parts.append(box(-w / 2 + post, w / 2 - post, -d / 2, d / 2, z, z + t, "shelves"))
+        parts.append(box(-w / 2 + 2 * r, w / 2 - 2 * r, -d / 2, d / 2, z, z + t, "shelves"))
         if k < n:
-            parts += cardboard_boxes(rng, -w / 2 + post + 0.02, w / 2 - post - 0.02, -d / 2 + 0.03, d / 2 - 0.03, z + t, levels[1] - levels[0] - t - 0.04, 10 * k)
+            parts += cardboard_boxes(rng, -w / 2 + 2 * r + 0.02, w / 2 - 2 * r - 0.02, -d / 2 + 0.03, d / 2 - 0.03, z + t, levels[1] - levels[0] - t - 0.04, 10 * k)
     return make_group("shelving", parts, "wall")
 
 
@@ -471,9 +882,19 @@ def mirror(rng: Rng) -> Group:
     return make_group("mirror", parts, "onwall")
 
 
+# A group that finds no place is tried once more in this more compact form.
+FALLBACKS: dict[str, Callable[[Rng], Group]] = {"dining": dining_by_wall}
+
 BUILDERS: dict[str, Callable[[Rng], Group]] = {
     "dining": dining_set,
+    "meeting": meeting_set,
+    "chairs": loose_chairs,
+    "stools": stool_row,
     "desk": desk_set,
+    "office_desk": lambda rng: desk_set(rng, office=True),
+    "ladder_shelf": ladder_shelf,
+    "arc_lamp": arc_lamp,
+    "plant": plant,
     "bed": bed_set,
     "sofa": sofa_set,
     "bookshelf": bookshelf,

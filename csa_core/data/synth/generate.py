@@ -12,7 +12,7 @@ from csa_core.data.camera import Intrinsics
 from csa_core.data.camera import parse_size as camera_parse_size
 from csa_core.data.scene import NYU40_FOLDER, Frame, Scene
 from csa_core.data.scene_io import write_scene
-from csa_core.data.synth.camera_path import NoPathError, camera_walk
+from csa_core.data.synth.camera_path import CAPTURES, NoPathError, capture_poses
 from csa_core.data.synth.families import RoomFamily, get_family
 from csa_core.data.synth.layout import Room, build_room
 from csa_core.data.synth.lighting import place_lights
@@ -63,28 +63,40 @@ def _exposures(family: RoomFamily, frames: int, rng: np.random.Generator) -> np.
     return family.exposure * np.exp(family.exposure_jitter * drift)
 
 
-def room_and_path(family: RoomFamily, seed: int, frames: int) -> tuple[Room, np.ndarray]:
-    """The room of (family, seed) and the camera poses walking through it."""
+def check_capture(capture: str) -> str:
+    """A capture mode name, or a user error naming ``--capture``."""
+    if capture not in CAPTURES:
+        raise CSAInputError("--capture", f"unknown capture mode {capture!r} (known: {', '.join(CAPTURES)})")
+    return capture
+
+
+def room_and_path(family: RoomFamily, seed: int, frames: int, capture: str = "walk") -> tuple[Room, np.ndarray]:
+    """The room of (family, seed) and the camera poses of the capture mode in it: "walk" (a
+    smooth walk through the room) or "random" (viewpoints spread at random through its free
+    space, ``camera_path.random_views``). Both modes get the same room of (family, seed) unless
+    its layout leaves one of them no room for the camera (then the next layout is drawn)."""
     rng = _rng(family, seed, 0)
     for attempt in range(LAYOUT_TRIES):
         room = build_room(family, rng, free_groups=attempt < LAYOUT_TRIES - 1)
         try:
-            return room, camera_walk(room, family, frames, rng)
+            return room, capture_poses(room, family, frames, rng, check_capture(capture))
         except NoPathError:
             continue
     raise RuntimeError(f"synth: no walkable layout for family {family.name!r}, seed {seed}")
 
 
-def generate_scene(family: str | RoomFamily, seed: int, frames: int, size: tuple[int, int], name: str | None = None) -> Scene:
+def generate_scene(family: str | RoomFamily, seed: int, frames: int, size: tuple[int, int], name: str | None = None, capture: str = "walk") -> Scene:
     """A synthetic scene in memory: ``frames`` posed RGB-D frames of one procedural room.
 
     ``family`` is a name from ``FAMILIES`` (or a :class:`RoomFamily`, e.g. a modified copy);
-    ``size`` is (width, height). Labels are under ``label-nyu40``. The result depends only on
-    the arguments: the same call gives bit-identical arrays.
+    ``size`` is (width, height); ``capture`` is "walk" or "random" (see :func:`room_and_path`).
+    Labels are under ``label-nyu40``. The result depends only on the arguments: the same call
+    gives bit-identical arrays.
     """
     fam = get_family(family)
     w, h = _check(frames, size, seed)
-    room, poses = room_and_path(fam, seed, frames)
+    check_capture(capture)
+    room, poses = room_and_path(fam, seed, frames, capture)
     look_rng = _rng(fam, seed, 1)
     lights = place_lights(fam, room, look_rng)
     model = build_model(room, fam, lights, look_rng)
@@ -111,14 +123,16 @@ def synthesize(
     family: str = "apartment",
     seed: int = 0,
     overwrite: bool = False,
+    capture: str = "walk",
 ) -> list[Path]:
     """Write ``scenes`` scene folders ``out_dir/<family>_<seed>_<k>`` (k = 0..scenes-1).
 
-    Scene k is ``generate_scene(family, scene_seed(seed, k), ...)``. Each folder is written
-    atomically; an existing one is an error unless ``overwrite``.
+    Scene k is ``generate_scene(family, scene_seed(seed, k), ..., capture=capture)``. Each
+    folder is written atomically; an existing one is an error unless ``overwrite``.
     """
     fam = get_family(family)
     _check(frames, size, seed)
+    check_capture(capture)
     if isinstance(scenes, bool) or not isinstance(scenes, int | np.integer) or scenes < 1:
         raise CSAInputError("--scenes", f"must be a positive integer, got {scenes!r}")
     out = Path(out_dir)
@@ -129,6 +143,6 @@ def synthesize(
                 raise CSAInputError(out / n, "output already exists (pass --overwrite to replace it)")
     written = []
     for k, n in enumerate(names):
-        scene = generate_scene(fam, scene_seed(seed, k), frames, size, name=n)
+        scene = generate_scene(fam, scene_seed(seed, k), frames, size, name=n, capture=capture)
         written.append(write_scene(scene, out / n, overwrite=overwrite))
     return written

@@ -15,7 +15,7 @@ import numpy as np
 
 from csa_core.data.synth.families import RoomFamily
 from csa_core.data.synth.floorplan import CELL_M, FloorGrid
-from csa_core.data.synth.furniture import BUILDERS, Group, Part
+from csa_core.data.synth.furniture import BUILDERS, FALLBACKS, Group, Part
 
 # Yaw that turns a group's back (+y) towards each wall's outward normal.
 WALL_YAW = (math.pi, -math.pi / 2, 0.0, math.pi / 2)
@@ -50,8 +50,8 @@ class PlacedGroup:
     def footprint(self, grid: FloorGrid) -> np.ndarray:
         """Floor cells covered by the group's parts."""
         cells = np.zeros_like(grid.occupied)
-        for centre, half, yaw, _ in self.world_parts():
-            cells |= grid.footprint(centre, half, yaw)
+        for centre, _, yaw, part in self.world_parts():
+            cells |= grid.footprint(centre, part.planar_half(), yaw)
         return cells
 
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
@@ -176,6 +176,8 @@ def build_room(family: RoomFamily, rng: np.random.Generator, free_groups: bool =
             if group.mount == "free" and not free_groups:
                 continue
             placed = _try_place(room, group, rng)
+            if placed is None and kind in FALLBACKS:
+                placed = _try_place(room, FALLBACKS[kind](rng), rng)
             if placed is None:
                 room.skipped.append(kind)
                 continue

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from csa_core.data.synth.boxes import BoxSet, any_hit
 from csa_core.data.synth.families import RoomFamily
 from csa_core.data.synth.layout import Room
+from csa_core.data.synth.solids import Solids
 
 
 @dataclass(frozen=True)
@@ -70,7 +70,7 @@ def irradiance(
     lights: list[Light],
     ambient: np.ndarray,
     falloff_m: float,
-    casters: BoxSet,
+    casters: Solids,
     caster_bounds: tuple[np.ndarray, np.ndarray],
     chunks: list[np.ndarray],
 ) -> np.ndarray:
@@ -100,7 +100,7 @@ def irradiance(
                     continue
                 # Stop 5 mm short of the point so its own surface does not shadow it.
                 t_end = 1.0 - 0.005 / np.maximum(dist[sel], 1e-6)
-                blocked = any_hit(light.position, pts - light.position, casters.subset(cand), t_end, eps=1e-3)
+                blocked = casters.subset(cand).any_hit(light.position, pts - light.position, t_end, eps=1e-3)
                 lit[sel[blocked]] = False
         gain = np.where(lit, cos, 0.0) / (1.0 + (dist / falloff_m) ** 2)
         e += gain[:, None] * light.power[None, :]

@@ -1,23 +1,26 @@
 """Render colour, z-depth and NYU40 labels of a room from a posed pinhole camera.
 
 Depth and labels come from the ray through each pixel centre. Primary rays are cast tile
-by tile: a tile only tests the boxes whose projected bounds touch it (exact culling:
-a box's image lies inside the bounds of its projected corners when all are in front of
-the camera), so each tile is one all-rays x all-candidate-boxes slab test.
+by tile: a tile only tests the solids (boxes and capsules) whose projected bounds touch it
+(exact culling: a solid's image lies inside the bounds of the projected corners of its box
+or bounding box when all are in front of the camera), so each tile is one all-rays x
+all-candidate-solids test.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from csa_core.data.camera import Intrinsics, pixel_rays
 from csa_core.data.nyu40 import class_id
-from csa_core.data.synth.boxes import BoxSet, closest_hit, face_hit, interior_exit
+from csa_core.data.synth.boxes import BoxSet, interior_exit
 from csa_core.data.synth.families import RoomFamily
+from csa_core.data.synth.furniture import Part
 from csa_core.data.synth.layout import Room
 from csa_core.data.synth.lighting import Light, irradiance
+from csa_core.data.synth.solids import CapsuleSet, Solids
 from csa_core.data.synth.textures import SHELL_CLASSES, MaterialTable, albedo, find_look
 
 TILE_PX = 40
@@ -27,12 +30,12 @@ WALL, FLOOR, CEILING = class_id("wall"), class_id("floor"), class_id("ceiling")
 
 @dataclass
 class RoomModel:
-    """Everything needed to render a room: boxes with class ids and materials, the shell
+    """Everything needed to render a room: solids with class ids and materials, the shell
     (interior box) materials, the material table and the lights."""
 
     lo: np.ndarray
     hi: np.ndarray
-    boxes: BoxSet
+    solids: Solids
     labels: np.ndarray  # (n,) uint8 NYU40 ids
     material: np.ndarray  # (n,) material ids
     casts_shadow: np.ndarray  # (n,) bool
@@ -43,30 +46,55 @@ class RoomModel:
     falloff_m: float
 
 
+def room_solids(room: Room) -> tuple[Solids, list[tuple[int, Part]]]:
+    """A room's furniture as solids, and the (group index, part) of each solid in order."""
+    boxes: list[tuple[np.ndarray, np.ndarray, float, float]] = []
+    caps: list[tuple[np.ndarray, np.ndarray, float]] = []
+    box_src: list[tuple[int, Part]] = []
+    cap_src: list[tuple[int, Part]] = []
+    for gi, g in enumerate(room.groups):
+        for centre, half, yaw, part in g.world_parts():
+            if part.shape == "rod":
+                axis = replace(part, yaw=yaw).rotation()[:, 2] * half[2]
+                caps.append((centre - axis, centre + axis, float(half[0])))
+                cap_src.append((gi, part))
+            else:
+                boxes.append((centre, half, yaw, part.tilt))
+                box_src.append((gi, part))
+    box_set = BoxSet(
+        np.array([b[0] for b in boxes]).reshape(-1, 3),
+        np.array([b[1] for b in boxes]).reshape(-1, 3),
+        np.array([b[2] for b in boxes], dtype=np.float64),
+        np.array([b[3] for b in boxes], dtype=np.float64),
+    )
+    cap_set = CapsuleSet(
+        np.array([c[0] for c in caps]).reshape(-1, 3),
+        np.array([c[1] for c in caps]).reshape(-1, 3),
+        np.array([c[2] for c in caps], dtype=np.float64),
+    )
+    return Solids(box_set, cap_set), box_src + cap_src
+
+
 def build_model(room: Room, family: RoomFamily, lights: list[Light], rng: np.random.Generator) -> RoomModel:
-    """Flatten a room's groups into boxes and draw a material for every (group, class, role, instance)."""
+    """The room's solids, and a material drawn for every (group, class, role, instance)."""
     table = MaterialTable.for_room(family.appearance, rng)
     shell = tuple(table.add(find_look(family, name, "body"), rng, shell=True) for name in SHELL_CLASSES)
-    centers, halves, yaws, labels, mats, casts = [], [], [], [], [], []
-    for gi, g in enumerate(room.groups):
-        keys: dict[tuple, int] = {}
-        for centre, half, yaw, part in g.world_parts():
+    solids, sources = room_solids(room)
+    keys: dict[tuple, int] = {}
+    for gi, g in enumerate(room.groups):  # materials drawn in part order, whatever the shape
+        for part in g.group.parts:
             key = (gi, part.label, part.role, part.instance)
             if key not in keys:
                 keys[key] = table.add(find_look(family, part.label, part.role), rng)
-            centers.append(centre)
-            halves.append(half)
-            yaws.append(yaw)
-            labels.append(class_id(part.label))
-            mats.append(keys[key])
-            casts.append(g.on_floor and part.label != "floor mat")
-    boxes = BoxSet(np.array(centers).reshape(-1, 3), np.array(halves).reshape(-1, 3), np.array(yaws, dtype=np.float64))
+    mats = [keys[(gi, p.label, p.role, p.instance)] for gi, p in sources]
+    labels = [class_id(p.label) for _, p in sources]
+    casts = [room.groups[gi].on_floor and p.label != "floor mat" for gi, p in sources]
     return RoomModel(
         lo=room.lo,
         hi=room.hi,
-        boxes=boxes,
+        solids=solids,
         labels=np.array(labels, dtype=np.uint8),
-        material=np.array(mats, dtype=np.int64),
+        material=np.asarray(mats, dtype=np.int64),
         casts_shadow=np.array(casts, dtype=bool),
         shell_material=shell,
         materials=table.arrays(),
@@ -82,8 +110,8 @@ class FrameRenderer:
     def __init__(self, model: RoomModel, intr: Intrinsics):
         self.model = model
         self.intr = intr
-        self.corners = model.boxes.corners()
-        self.casters = model.boxes.subset(np.nonzero(model.casts_shadow)[0])
+        self.corners = model.solids.corners()
+        self.casters = model.solids.subset(np.nonzero(model.casts_shadow)[0])
         self.caster_bounds = self.casters.aabb()
         self.tiles = self._tiles()
 
@@ -124,14 +152,16 @@ class FrameRenderer:
 
         t_shell, s_axis, s_side = interior_exit(origin[None, :], d, m.lo, m.hi)
         box_idx = np.full(n, -1, dtype=np.int64)
+        box_t = np.full(n, np.inf)
         rect, front = self._projected_bounds(pose)
         for x0, x1, y0, y1, idx in self.tiles:
             cand = np.nonzero(front & (rect[:, 1] >= x0 - 1) & (rect[:, 0] <= x1) & (rect[:, 3] >= y0 - 1) & (rect[:, 2] <= y1))[0]
             if len(cand) == 0:
                 continue
-            _, local_idx = closest_hit(origin, d[idx], m.boxes.subset(cand), t_shell[idx])
+            t_hit, local_idx = m.solids.subset(cand).closest_hit(origin, d[idx], t_shell[idx])
             hit = local_idx >= 0
             box_idx[idx[hit]] = cand[local_idx[hit]]
+            box_t[idx[hit]] = t_hit[hit]
 
         t = t_shell.copy()
         axis = s_axis.copy()
@@ -145,11 +175,11 @@ class FrameRenderer:
         on_box = np.nonzero(box_idx >= 0)[0]
         if len(on_box):
             bi = box_idx[on_box]
-            tb, loc_b, ax_b, nrm_b = face_hit(origin, d[on_box], m.boxes, bi)
+            tb, loc_b, ax_b, nrm_b = m.solids.surface(origin, d[on_box], bi, box_t[on_box])
             t[on_box] = tb
             axis[on_box] = ax_b
             local[on_box] = loc_b
-            normal[on_box] = m.boxes.normal_to_world(nrm_b, bi)
+            normal[on_box] = nrm_b
             labels[on_box] = m.labels[bi]
             mat[on_box] = m.material[bi]
             points[on_box] = origin + tb[:, None] * d[on_box]
