@@ -25,6 +25,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--size", type=size_arg, default=(160, 120), help="WxH (default 160x120)")
     s.add_argument("--family", default="apartment", help="room family (see `csa data families`)")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument(
+        "--capture",
+        default="walk",
+        help="walk: a smooth hand-held walk (default); random: viewpoints spread at random "
+        "through the room's free space, each looking at a random target",
+    )
     s.add_argument("--overwrite", action="store_true")
     s.set_defaults(func=_synth)
 
@@ -82,7 +88,16 @@ def _label_spec(text: str) -> str | list[str]:
 def _synth(args: argparse.Namespace) -> int:
     from csa_core.data.synth import synthesize
 
-    paths = synthesize(args.out, scenes=args.scenes, frames=args.frames, size=args.size, family=args.family, seed=args.seed, overwrite=args.overwrite)
+    paths = synthesize(
+        args.out,
+        scenes=args.scenes,
+        frames=args.frames,
+        size=args.size,
+        family=args.family,
+        seed=args.seed,
+        overwrite=args.overwrite,
+        capture=args.capture,
+    )
     for p in paths:
         print(p)
     return 0
