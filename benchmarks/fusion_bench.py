@@ -16,6 +16,8 @@ Scenes: ``synth:FAMILY:SEED`` (rendered in memory), ``folder:PATH`` or a bare pa
 folder, and a 7-Scenes sequence folder (bare path or ``7scenes:PATH``), imported with the
 project's importer at ``--size`` and moved to the Kinect colour camera. ``--families`` adds
 ``synth:FAMILY:SEED`` for each family (``all``: every family of ``csa data families``).
+``--capture random`` renders the synthetic rooms from viewpoints spread at random through the
+room instead of the walk (``csa data synth --capture``); the scene is named ``FAMILY_SEED_random``.
 
 Labels fused (training views; ground truth ``label-nyu40`` scores them):
 ``--noise`` (default for scenes with ground truth) corrupts each frame's ground truth
@@ -103,9 +105,11 @@ from csa_core.data.synth import (
     NOISY_FOLDER,
     degrade_scene,
     family_names,
+    generate_scene,
     mix_depth_edges,
     parse_size,
 )
+from csa_core.data.synth.camera_path import CAPTURES
 from csa_core.errors import CSAInputError
 from csa_core.eval import ConfusionMatrix
 from csa_core.nerf import (
@@ -168,9 +172,13 @@ def scene_specs(args: argparse.Namespace) -> list[str]:
     return specs
 
 
-def open_scene(spec: str, size: tuple[int, int], frames: int) -> tuple[Scene, bool]:
+def open_scene(spec: str, size: tuple[int, int], frames: int, capture: str = "walk") -> tuple[Scene, bool]:
     """A scene and whether it has ground-truth labels. A bare path is a 7-Scenes sequence
-    (frame-XXXXXX.color.*) or a scene folder."""
+    (frame-XXXXXX.color.*) or a scene folder; ``capture`` is the synthetic rooms' capture mode."""
+    if spec.startswith("synth:") and capture != "walk":
+        family, _, seed = spec.removeprefix("synth:").partition(":")
+        family, seed = family or "apartment", int(seed or 0)
+        return generate_scene(family, seed, frames, size, f"{family}_{seed}_{capture}", capture), True
     if ":" not in spec.split("/")[0]:
         path = Path(spec)
         seven = path.is_dir() and any(path.glob("frame-*.color.*"))
@@ -512,7 +520,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     rows = []
     for spec in scene_specs(args):
         for variant in args.variants.split(","):
-            scene, labelled = open_scene(spec, args.size, args.frames)
+            scene, labelled = open_scene(spec, args.size, args.frames, args.capture)
             space = wants_space_labels(labelled, args)
             # A real capture keeps its colour and depth in the hard variant; a synthetic room
             # (exact depth) is degraded as usual.
@@ -687,6 +695,9 @@ def main() -> None:
         "--per-class", action="store_true", help="also print each fuser's IoU of every class"
     )
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
+    p.add_argument(
+        "--capture", default="walk", choices=CAPTURES, help="capture mode of synth: scenes (walk)"
+    )
     args = p.parse_args()
     if args.space_labels and (args.labels or args.predictions):
         raise SystemExit("--space-labels: only with --noise (not with --labels or --predictions)")
