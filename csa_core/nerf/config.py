@@ -34,7 +34,8 @@ class HashEncodingConfig:
     compile: bool = False
     # Ours: ``auto`` encodes float32 positions on the CPU with a fused C kernel
     # (csa_core/nerf/hash_kernel.py; benchmarks/results/speed.md, "A fused C kernel for the
-    # hash encoding") where a C compiler is present, else in PyTorch; ``torch``: always PyTorch.
+    # hash encoding") where a C compiler is present, and on CUDA with a Triton kernel
+    # (csa_core/nerf/hash_triton.py) where Triton is, else in PyTorch; ``torch``: always PyTorch.
     implementation: Literal["auto", "torch"] = "auto"
 
     def __post_init__(self) -> None:
@@ -71,6 +72,16 @@ class FieldConfig:
     # rendering weights are detached for the semantic channel (docs/presets.md "The paper preset").
     semantic_detach_geometry: bool = True
     sh_degree: int = 4  # spherical harmonics of the view direction (16 coefficients)
+    # Ours: "bfloat16" runs the MLPs under bf16 autocast on CUDA (the paper's implementation
+    # trains its MLPs in fp16; bf16 needs no loss scaling); densities, colours and class
+    # distributions are composited in float32. CPU tensors always run in float32.
+    mlp_dtype: Literal["float32", "bfloat16"] = "float32"
+
+    def __post_init__(self) -> None:
+        if self.mlp_dtype not in ("float32", "bfloat16"):
+            raise ValueError(
+                f"field.mlp_dtype must be 'float32' or 'bfloat16', got {self.mlp_dtype!r}"
+            )
     num_classes: int = NUM_CLASSES  # NYU40 ids 1..40 -> channels 0..39
 
 

@@ -114,8 +114,16 @@ class SemanticField(nn.Module):
         sigma, geo = self._density_head(x, enc)
         return sigma, geo, sem
 
+    def _run(self, mlp: nn.Module, inputs: Tensor) -> Tensor:
+        """``mlp(inputs)``, under bf16 autocast on CUDA with ``FieldConfig.mlp_dtype``
+        "bfloat16" (the result back in float32)."""
+        if self.cfg.mlp_dtype == "bfloat16" and inputs.is_cuda:
+            with torch.autocast("cuda", dtype=torch.bfloat16):
+                return mlp(inputs).float()
+        return mlp(inputs)
+
     def _density_head(self, x: Tensor, enc: Tensor) -> tuple[Tensor, Tensor]:
-        h = self.density_mlp(enc)
+        h = self._run(self.density_mlp, enc)
         inside = ((x >= 0) & (x <= 1)).all(dim=-1)
         sigma = trunc_exp(h[:, 0] - 1.0) * inside  # bias -1: start nearly empty
         return sigma, h[:, 1:]
@@ -126,7 +134,7 @@ class SemanticField(nn.Module):
         if self.cfg.semantic_detach_geometry:
             geo = geo.detach()
         sem_in = geo if sem is None else torch.cat([geo, sem], dim=-1)
-        return self.semantic_mlp(sem_in)
+        return self._run(self.semantic_mlp, sem_in)
 
     def density(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """Density ``(N,)`` (per metre of world space) and geometry features ``(N, geo)`` at ``x``."""
@@ -149,7 +157,7 @@ class SemanticField(nn.Module):
     def color(self, geo: Tensor, dirs: Tensor) -> Tensor:
         """Colour ``(N, 3)`` in [0, 1] from geometry features and unit view directions."""
         sh = spherical_harmonics(dirs, self.cfg.sh_degree)
-        return torch.sigmoid(self.color_mlp(torch.cat([sh, geo], dim=-1)))
+        return torch.sigmoid(self._run(self.color_mlp, torch.cat([sh, geo], dim=-1)))
 
     def forward(
         self, x: Tensor, dirs: Tensor | None, semantics: bool = True, color: bool = True

@@ -11,8 +11,10 @@ combined by broadcasting, which is ~8x less integer work than hashing 8 corners;
 pass is one ``embedding_bag`` (gather + weighted sum), the backward pass one ``index_add_``.
 No gradient flows to the positions (the poses are fixed). Without autograd (rendering), large
 batches are encoded in cache-sized blocks (``INFERENCE_BLOCK``).
-On a CPU, float32 positions go through the fused C kernel of ``hash_kernel.py`` instead (same
-arithmetic; ``HashEncodingConfig.implementation``); this module's path is its reference.
+On a CPU, float32 positions go through the fused C kernel of ``hash_kernel.py`` instead, on CUDA
+through the Triton kernel of ``hash_triton.py`` (same arithmetic;
+``HashEncodingConfig.implementation``); this module's path is their reference. On CUDA the
+inference blocks above are not used: one launch over every position fills the device.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from csa_core.nerf import hash_kernel
+from csa_core.nerf import hash_kernel, hash_triton
 from csa_core.nerf.config import HashEncodingConfig
 
 # Spatial-hash primes of Instant-NGP (x uses 1).
@@ -203,6 +205,12 @@ class HashEncoding(nn.Module):
         table = self.table if table is None else table
         return self.cfg.implementation == "auto" and hash_kernel.usable(x, table)
 
+    def uses_triton(self, x: Tensor, table: Tensor | None = None) -> bool:
+        """Whether positions ``x`` are encoded by the Triton kernel (``hash_triton``):
+        ``implementation`` ``auto``, float32 on CUDA, and Triton there."""
+        table = self.table if table is None else table
+        return self.cfg.implementation == "auto" and hash_triton.usable(x, table)
+
     def kernel_layout(self) -> hash_kernel.LevelLayout:
         """This encoding's level layout as the C kernel reads it (its own int32 buffers)."""
         return hash_kernel.LevelLayout(self._res_int, self._offsets, self._num_dense, self._hash_mask)
@@ -226,7 +234,16 @@ class HashEncoding(nn.Module):
             if extra is None:
                 return feats
             return feats, hash_kernel.encode(x, extra, extra_levels, layout)
-        if n > INFERENCE_BLOCK and not torch.is_grad_enabled():
+        if self.uses_triton(x, main) and (extra is None or hash_triton.usable(x, extra)):
+            try:
+                layout = self.kernel_layout()
+                feats = hash_triton.encode(x, main, self.cfg.num_levels, layout)
+                if extra is None:
+                    return feats
+                return feats, hash_triton.encode(x, extra, extra_levels, layout)
+            except Exception as e:  # noqa: BLE001 - a kernel that fails to build: PyTorch path
+                hash_triton.mark_failed(e)
+        if n > INFERENCE_BLOCK and not torch.is_grad_enabled() and not x.is_cuda:
             parts = [
                 self(x[i : i + INFERENCE_BLOCK], extra, extra_levels, detach_main)
                 for i in range(0, n, INFERENCE_BLOCK)

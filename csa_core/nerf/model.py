@@ -373,7 +373,7 @@ class SemanticNerf(nn.Module):
             sampler = self.render_sampler(with_depth=depth is not None)
         elif isinstance(sampler, str):
             sampler = self.make_sampler(sampler)
-        chunk = chunk or self.config.render_chunk
+        chunk = chunk or render_chunk(self.config.render_chunk, origins.device)
         # A pruned march evaluates the field at every sample it keeps: keep the features too
         # (benchmarks/results/speed.md "A cheaper march for novel views").
         march_fn = (
@@ -517,10 +517,21 @@ class SemanticNerf(nn.Module):
         return seen
 
 
+# On CUDA, rays rendered per chunk at least this many (the config's ``render_chunk`` is sized
+# for CPU caches; a GPU needs far more work per launch: benchmarks/results/gpu.md "The GPU path").
+CUDA_RENDER_CHUNK = 2**15
+
+
+def render_chunk(configured: int, device: torch.device) -> int:
+    """Rays per rendering chunk on ``device``: the config's, raised to ``CUDA_RENDER_CHUNK`` on CUDA."""
+    return max(configured, CUDA_RENDER_CHUNK) if device.type == "cuda" else configured
+
+
 def _blocked(fn, *inputs: Tensor | None, block: int = INFERENCE_BLOCK) -> Tensor:
-    """``fn(*inputs)`` on blocks of ``block`` rows (inference: keeps the work cache-sized)."""
+    """``fn(*inputs)`` on blocks of ``block`` rows (inference on a CPU: keeps the work
+    cache-sized); on CUDA in one call."""
     n = inputs[0].shape[0]
-    if n <= block:
+    if n <= block or inputs[0].is_cuda:
         return fn(*inputs)
     parts = [
         fn(*(None if t is None else t[i : i + block] for t in inputs)) for i in range(0, n, block)

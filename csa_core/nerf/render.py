@@ -29,7 +29,7 @@ from csa_core.data.label_images import save_preview
 from csa_core.data.nyu40 import UNKNOWN
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.errors import CSAInputError
-from csa_core.nerf.model import SemanticNerf
+from csa_core.nerf.model import SemanticNerf, render_chunk
 from csa_core.nerf.rays import image_rays
 
 VIEWS = ("train", "val", "all", "novel")
@@ -249,17 +249,19 @@ def render_frames(
     sampler: str | None = None,
     appearance: int | None = None,
     color: bool = True,
-    rays_per_pass: int = 2**16,
+    rays_per_pass: int | None = None,
     unseen_unknown: bool | None = None,
 ) -> list[RenderedView]:
     """Render the ``(name, pose)`` cameras, the rays of several views per forward pass (about
-    ``rays_per_pass``). ``depths``: each view's measured depth (or ``None``); views with depth
+    ``rays_per_pass``; default 2^16 on a CPU, 2^18 on CUDA). ``depths``: each view's measured depth (or ``None``); views with depth
     and views without are batched separately, as they use different samplers.
     ``unseen_unknown``: see the module's description."""
     intr = intrinsics or nerf.info.intrinsics
     if unseen_unknown is None:
         unseen_unknown = nerf.config.render_unseen_unknown
     hw = intr.width * intr.height
+    if rays_per_pass is None:
+        rays_per_pass = 2**18 if nerf.device.type == "cuda" else 2**16
     depths = list(depths) if depths is not None else [None] * len(poses)
     if len(depths) != len(poses):
         raise ValueError(f"render_frames: {len(poses)} poses but {len(depths)} depth maps")
@@ -287,9 +289,10 @@ def render_frames(
                 semantics=semantics,
                 appearance=appearance,
                 color=color,
-                # Band-only samples are few per ray: bigger chunks (colour marches whole rays).
-                chunk=max(rays_per_pass, nerf.config.render_chunk)
-                if with_depth and not color
+                # Band-only samples are few per ray: bigger chunks (colour marches whole rays,
+                # and so do the labels of a config that does not render in the depth band).
+                chunk=max(rays_per_pass, render_chunk(nerf.config.render_chunk, nerf.device))
+                if with_depth and not color and nerf.config.sampler.render_depth_guided
                 else None,
             )
             known = None
