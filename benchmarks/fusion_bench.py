@@ -349,7 +349,7 @@ def map_rows(scene: Scene, has_labels: bool, args: argparse.Namespace) -> list[d
 
     def fit_and_cast() -> dict[str, Any]:
         t0 = time.perf_counter()
-        out["map"] = build_voxel_map(scene, inputs, cfg)
+        out["map"] = build_voxel_map(scene, inputs, cfg, args.device_torch)
         fit_s = time.perf_counter() - t0
         row = {"fuser": f"map ({100 * args.voxel:.0f} cm)", "fit_s": fit_s}
         row["stored_mb"] = out["map"].nbytes / 1e6

@@ -3,6 +3,7 @@
     python benchmarks/mapping_bench.py [--family office] [--frames 40] [--size 160x120]
                                        [--variants clean,hard] [--voxels 0.05,0.1]
                                        [--cotta-images 6] [--threads 1]
+                                       [--backends torch,numpy] [--device cpu]
 
 Mapping: labels are fused in a voxel map (a TSDF plus class scores, ``build_voxel_map``) and
 read back at every view, by ray casting to the TSDF's zero crossing (Mapping's read-back) and,
@@ -16,6 +17,11 @@ map's size (labelled voxels / TSDF voxels / bytes), the replay images Mapping mu
 the fusion seconds and the read-back seconds per view. CoTTA: seconds per online step of a
 freshly built network (untrained: the number is speed only), for the paper's six scales and
 the CPU subset, after one untimed step.
+
+``--backends torch,numpy`` builds and reads every map with both implementations of the voxel
+map (the torch one on ``--device``, and its numpy reference) and adds a table of their speed
+ratios (numpy seconds / torch seconds: fusion, ray cast, depth read-back) and of how many
+labels they share, in the same run on the same views.
 """
 
 from __future__ import annotations
@@ -33,10 +39,11 @@ from csa_core.adapt.baselines.mapping import (
     mapping_memory,
     render_map_labels,
 )
-from csa_core.adapt.baselines.voxel_map import VoxelMapConfig
+from csa_core.adapt.baselines.voxel_map import BACKENDS, VoxelMapConfig
 from csa_core.data.label_noise import corrupt_labels
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.data.synth import NOISY_FOLDER, degrade_scene, generate_scene, parse_size
+from csa_core.device import resolve_device
 from csa_core.eval import ConfusionMatrix
 from csa_core.seg.models import build_model
 
@@ -72,29 +79,61 @@ def label_sets(scene: Scene, variant: str, seed: int) -> dict[str, dict[str, np.
     return sets
 
 
-def mapping_rows(scene: Scene, variant: str, voxel_sizes: list[float], seed: int) -> list[str]:
+def mapping_rows(
+    scene: Scene,
+    variant: str,
+    voxel_sizes: list[float],
+    seed: int,
+    backends: list[str],
+    device: torch.device,
+    ratios: list[str],
+) -> list[str]:
+    """Rows of the quality table; with two backends, rows of the speed-ratio table go to
+    ``ratios``."""
     rows = []
     for name, inputs in label_sets(scene, variant, seed).items():
         miou, agree, share = score(inputs, scene)
         rows.append(
-            f"| {variant} | {name} | - | input | {100 * miou:.1f} | {100 * agree:.1f} "
+            f"| {variant} | {name} | - | - | input | {100 * miou:.1f} | {100 * agree:.1f} "
             f"| {100 * share:.1f} | - | - | - | - |"
         )
         for size in voxel_sizes:
-            t0 = time.perf_counter()
-            voxel_map = build_voxel_map(scene, inputs, VoxelMapConfig(voxel_size=size))
-            fuse = time.perf_counter() - t0
-            for read in READ_BACKS:
+            seconds: dict[tuple[str, str], float] = {}
+            labels: dict[tuple[str, str], dict[str, np.ndarray]] = {}
+            for backend in backends:
                 t0 = time.perf_counter()
-                pseudo = render_map_labels(voxel_map, scene, list(inputs), read=read)
-                per_view = (time.perf_counter() - t0) / len(inputs)
-                miou, agree, share = score(pseudo, scene)
-                replay = mapping_memory(scene, pseudo).footprint()
-                rows.append(
-                    f"| {variant} | {name} | {100 * size:.0f} cm | {read} | {100 * miou:.1f} "
-                    f"| {100 * agree:.1f} | {100 * share:.1f} | {voxel_map.num_voxels} / "
-                    f"{voxel_map.num_tsdf_voxels} / {voxel_map.nbytes / 1e6:.2f} MB "
-                    f"| {replay.replay_bytes / 1e6:.2f} MB | {fuse:.2f} | {per_view:.3f} |"
+                voxel_map = build_voxel_map(
+                    scene, inputs, VoxelMapConfig(voxel_size=size), device, backend
+                )
+                fuse = seconds[backend, "fuse"] = time.perf_counter() - t0
+                for read in READ_BACKS:
+                    t0 = time.perf_counter()
+                    pseudo = render_map_labels(voxel_map, scene, list(inputs), read=read)
+                    per_view = (time.perf_counter() - t0) / len(inputs)
+                    seconds[backend, read], labels[backend, read] = per_view, pseudo
+                    miou, agree, share = score(pseudo, scene)
+                    replay = mapping_memory(scene, pseudo).footprint()
+                    rows.append(
+                        f"| {variant} | {name} | {100 * size:.0f} cm | {backend} | {read} "
+                        f"| {100 * miou:.1f} | {100 * agree:.1f} | {100 * share:.1f} "
+                        f"| {voxel_map.num_voxels} / {voxel_map.num_tsdf_voxels} / "
+                        f"{voxel_map.nbytes / 1e6:.2f} MB | {replay.replay_bytes / 1e6:.2f} MB "
+                        f"| {fuse:.2f} | {per_view:.3f} |"
+                    )
+            if len(backends) == 2:
+                a, b = backends
+                same = [
+                    np.mean([(labels[a, r][n] == labels[b, r][n]).mean() for n in inputs])
+                    for r in READ_BACKS
+                ]
+                ratios.append(
+                    f"| {variant} | {name} | {100 * size:.0f} cm | "
+                    + " | ".join(
+                        f"{seconds[b, k] / seconds[a, k]:.1f}" for k in ("fuse", *READ_BACKS)
+                    )
+                    + " | "
+                    + " | ".join(f"{100 * v:.2f}" for v in same)
+                    + " |"
                 )
     return rows
 
@@ -131,25 +170,47 @@ def main() -> None:
     parser.add_argument("--arch", default="lraspp_mobilenet_v3_large")
     parser.add_argument("--cotta-images", type=int, default=6, help="0 skips CoTTA")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--backends", default="torch", help="voxel map implementations: torch, numpy or both"
+    )
+    parser.add_argument("--device", default="cpu", help="the torch voxel map's device")
     args = parser.parse_args()
     variants = args.variants.split(",")
     bad = set(variants) - set(VARIANTS)
     if bad:
         parser.error(f"--variants: unknown {', '.join(sorted(bad))} (choose from clean, hard)")
+    backends = args.backends.split(",")
+    if not backends or set(backends) - set(BACKENDS) or len(set(backends)) != len(backends):
+        parser.error(f"--backends: {args.backends!r}, expected one or both of {BACKENDS}")
+    device = resolve_device(args.device)
     torch.set_num_threads(args.threads)
     scene = generate_scene(args.family, args.seed, args.frames, parse_size(args.size))
     w, h = scene.size
-    print(f"Mapping on {scene.name}: {len(scene)} frames at {w}x{h}\n")
     print(
-        "| capture | labels | voxel | read-back | mIoU % | agreement % | labelled % "
+        f"Mapping on {scene.name}: {len(scene)} frames at {w}x{h}, {args.threads} thread(s), "
+        f"torch map on {device}\n"
+    )
+    print(
+        "| capture | labels | voxel | map | read-back | mIoU % | agreement % | labelled % "
         "| voxels (labelled / TSDF) / map | replay images | fuse s | read s / view |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     sizes = [float(v) for v in args.voxels.split(",")]
+    ratios: list[str] = []
     for variant in variants:
         captured = degrade_scene(scene, args.seed) if variant == "hard" else scene
-        for row in mapping_rows(captured, variant, sizes, args.seed):
+        for row in mapping_rows(captured, variant, sizes, args.seed, backends, device, ratios):
             print(row, flush=True)
+    if ratios:
+        a, b = backends
+        print(f"\nSpeed of the {a} map over the {b} map (their seconds' ratio), same views\n")
+        print(
+            "| capture | labels | voxel | fuse | ray cast | depth read-back "
+            "| equal ray-cast labels % | equal depth labels % |"
+        )
+        print("|---|---|---|---|---|---|---|---|")
+        for row in ratios:
+            print(row)
     if args.cotta_images > 0:
         print(f"\nCoTTA online steps at {w}x{h}, {args.threads} thread(s)\n")
         print("| network | scales | teacher passes | s / image | extra copies | Adam state |")

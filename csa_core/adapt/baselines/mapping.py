@@ -21,6 +21,7 @@ from csa_core.data.scene import Frame, Scene
 from csa_core.errors import CSAInputError
 
 if TYPE_CHECKING:
+    import torch
     from torch import Tensor
     from torch.utils.data import Dataset, Sampler
 
@@ -58,12 +59,15 @@ def build_voxel_map(
     scene: Scene,
     predictions: Mapping[str, np.ndarray],
     config: VoxelMapConfig | None = None,
+    device: str | torch.device | None = None,
+    backend: str = "torch",
 ) -> VoxelSemanticMap:
     """Fuse ``predictions`` (frame name -> (H, W) NYU40 labels or (H, W, C) probabilities)
-    into a voxel map using each frame's depth and pose. Frames without depth add nothing;
-    a scene where no predicted frame has depth is an input error (Mapping needs depth)."""
+    into a voxel map using each frame's depth and pose, on ``device`` (default CPU; ``backend``
+    "numpy" is the map's reference implementation). Frames without depth add nothing; a scene
+    where no predicted frame has depth is an input error (Mapping needs depth)."""
     frames = _frames_by_name(scene, list(predictions))
-    voxel_map = VoxelSemanticMap(config)
+    voxel_map = VoxelSemanticMap(config, device=device, backend=backend)
     if frames and not any(f.depth is not None and f.depth_mask.any() for f in frames):
         raise CSAInputError(
             scene.root or f"scene {scene.name}", "Mapping needs depth, and no frame has any"
@@ -105,9 +109,10 @@ def mapping_pseudo_labels(
     scene: Scene,
     predictions: Mapping[str, np.ndarray],
     config: VoxelMapConfig | None = None,
+    device: str | torch.device | None = None,
 ) -> dict[str, np.ndarray]:
     """Mapping's pseudo-labels: fuse the predicted frames, read the map back at the same frames."""
-    voxel_map = build_voxel_map(scene, predictions, config)
+    voxel_map = build_voxel_map(scene, predictions, config, device)
     return render_map_labels(voxel_map, scene, list(predictions))
 
 
@@ -268,17 +273,19 @@ def mapping_adapt(
     them, reads pseudo-labels back, and fine-tunes ``model`` in place on GI+ML plus the
     ``replay`` buffer of earlier scenes' stored pairs. Keep the returned ``memory`` for later steps.
     """
+    from csa_core.device import resolve_device
+    from csa_core.seg.config import TrainConfig
+
     names = [f.name for f in scene.train_frames]
+    device = (train or TrainConfig.paper_adaptation()).device  # predict and map where it trains
     if predictions is None:
-        from csa_core.seg.config import TrainConfig
         from csa_core.seg.predict import predict_scene
 
-        device = (train or TrainConfig.paper_adaptation()).device  # predict where it trains
         predictions = predict_scene(model, scene, split="train", device=device)
     else:
         predictions = {n: predictions[n] for n in names if n in predictions}
     t0 = time.perf_counter()
-    voxel_map = build_voxel_map(scene, predictions, voxel)
+    voxel_map = build_voxel_map(scene, predictions, voxel, resolve_device(device))
     pseudo = render_map_labels(voxel_map, scene, list(predictions))
     seconds = time.perf_counter() - t0
     result = finetune_on_map_labels(model, scene, pseudo, train, replay, transform)

@@ -33,10 +33,14 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
+from torch import Tensor
 
 from csa_core.data.camera import Intrinsics, backproject, pixel_rays
 from csa_core.data.nyu40 import NUM_CLASSES, UNKNOWN
+from csa_core.device import resolve_device
 
+BACKENDS = ("torch", "numpy")  # the implementation, and the reference it is tested against
 # Frey et al. (RA-L 2022) fuse predictions at 5 cm (docs/method.md, "Baselines").
 PAPER_VOXEL_SIZE = 0.05
 
@@ -130,15 +134,62 @@ class VoxelSemanticMap:
     in metres (positive in front of the surface) and its summed observation ``weights`` (M,).
     """
 
-    def __init__(self, config: VoxelMapConfig | None = None):
+    def __init__(
+        self,
+        config: VoxelMapConfig | None = None,
+        device: str | torch.device | None = None,
+        backend: str = "torch",
+    ):
         self.config = config or VoxelMapConfig()
-        self.keys = np.zeros(0, dtype=np.int64)
-        self.scores = np.zeros((0, self.config.num_classes), dtype=np.float32)
-        self.tsdf_keys = np.zeros(0, dtype=np.int64)
-        self.tsdf = np.zeros(0, dtype=np.float32)
-        self.weights = np.zeros(0, dtype=np.float32)
+        if backend not in BACKENDS:
+            raise ValueError(
+                f"VoxelSemanticMap: backend must be one of {BACKENDS}, got {backend!r}"
+            )
+        self.backend = backend
+        self.device = torch.device("cpu") if device is None else resolve_device(device)
+        if backend == "numpy" and self.device.type != "cpu":
+            raise ValueError(
+                f"VoxelSemanticMap: the numpy reference runs on the CPU, not on {self.device}"
+            )
+        c = self.config.num_classes
+        if backend == "numpy":
+            self._keys: np.ndarray | Tensor = np.zeros(0, dtype=np.int64)
+            self._scores: np.ndarray | Tensor = np.zeros((0, c), dtype=np.float32)
+            self._tsdf_keys: np.ndarray | Tensor = np.zeros(0, dtype=np.int64)
+            self._tsdf: np.ndarray | Tensor = np.zeros(0, dtype=np.float32)
+            self._weights: np.ndarray | Tensor = np.zeros(0, dtype=np.float32)
+        else:
+            dev = self.device
+            self._keys = torch.zeros(0, dtype=torch.int64, device=dev)
+            self._scores = torch.zeros((0, c), dtype=torch.float32, device=dev)
+            self._tsdf_keys = torch.zeros(0, dtype=torch.int64, device=dev)
+            self._tsdf = torch.zeros(0, dtype=torch.float32, device=dev)
+            self._weights = torch.zeros(0, dtype=torch.float32, device=dev)
         self.frames_integrated = 0
-        self._surface: _Surface | None = None  # ray-cast lookup, rebuilt after integrating
+        # ray-cast lookup, rebuilt after integrating
+        self._surface: _Surface | _TorchSurface | None = None
+
+    # The layers as numpy arrays (the numpy backend's own arrays; the torch backend's tensors
+    # shared on the CPU, copied from another device).
+    @property
+    def keys(self) -> np.ndarray:
+        return _as_numpy(self._keys)
+
+    @property
+    def scores(self) -> np.ndarray:
+        return _as_numpy(self._scores)
+
+    @property
+    def tsdf_keys(self) -> np.ndarray:
+        return _as_numpy(self._tsdf_keys)
+
+    @property
+    def tsdf(self) -> np.ndarray:
+        return _as_numpy(self._tsdf)
+
+    @property
+    def weights(self) -> np.ndarray:
+        return _as_numpy(self._weights)
 
     @property
     def voxel_size(self) -> float:
@@ -152,19 +203,19 @@ class VoxelSemanticMap:
     @property
     def num_voxels(self) -> int:
         """Voxels with class scores (those surface points fell in)."""
-        return int(self.keys.size)
+        return int(self._keys.shape[0])
 
     @property
     def num_tsdf_voxels(self) -> int:
         """Voxels with a signed distance (those within the truncation of a surface a frame
         saw, and their face neighbours)."""
-        return int(self.tsdf_keys.size)
+        return int(self._tsdf_keys.shape[0])
 
     @property
     def nbytes(self) -> int:
         """Bytes held by the map: both layers' keys and values."""
-        arrays = (self.keys, self.scores, self.tsdf_keys, self.tsdf, self.weights)
-        return int(sum(a.nbytes for a in arrays))
+        arrays = (self._keys, self._scores, self._tsdf_keys, self._tsdf, self._weights)
+        return int(sum(_nbytes(a) for a in arrays))
 
     def _surface_keys(
         self, depth: np.ndarray, pose: np.ndarray, intrinsics: Intrinsics
@@ -186,25 +237,52 @@ class VoxelSemanticMap:
         (H, W, C) probability map. Every pixel with depth updates the TSDF, whatever its
         label. Returns the number of points that added scores."""
         prediction = np.asarray(prediction)
-        keys, valid = self._surface_keys(depth, pose, intrinsics)
+        depth = _check_depth(depth, intrinsics)
+        valid = np.isfinite(depth) & (depth > 0)
         c = self.config.num_classes
         if prediction.ndim == 2:
             if prediction.shape != valid.shape:
                 raise ValueError(f"integrate: labels {prediction.shape} vs depth {valid.shape}")
+            top = int(prediction[valid].max()) if valid.any() else 0
+            if top > c:
+                raise ValueError(f"integrate: label id {top} exceeds {c} classes")
+        elif prediction.ndim == 3:
+            if prediction.shape != (*valid.shape, c):
+                raise ValueError(
+                    f"integrate: probabilities {prediction.shape}, expected {(*valid.shape, c)}"
+                )
+        else:
+            raise ValueError(
+                f"integrate: expected (H, W) labels or (H, W, C) probabilities, got {prediction.shape}"
+            )
+        if self.backend == "torch":
+            points = _integrate_torch(self, prediction, depth, valid, pose, intrinsics)
+        else:
+            points = self._integrate_numpy(prediction, depth, valid, pose, intrinsics)
+        self.frames_integrated += 1
+        self._surface = None
+        return points
+
+    def _integrate_numpy(
+        self,
+        prediction: np.ndarray,
+        depth: np.ndarray,
+        valid: np.ndarray,
+        pose: np.ndarray,
+        intrinsics: Intrinsics,
+    ) -> int:
+        """The reference's :meth:`integrate` of a checked frame."""
+        keys = self._surface_keys(depth, pose, intrinsics)[0]
+        c = self.config.num_classes
+        if prediction.ndim == 2:
             labels = prediction[valid].astype(np.int64)
-            if labels.size and labels.max() > c:
-                raise ValueError(f"integrate: label id {labels.max()} exceeds {c} classes")
             voted = labels > UNKNOWN
             keys, labels = keys[voted], labels[voted] - 1
             frame_keys, inverse = np.unique(keys, return_inverse=True)
             frame_scores = np.bincount(inverse * c + labels, minlength=frame_keys.size * c).reshape(
                 frame_keys.size, c
             )
-        elif prediction.ndim == 3:
-            if prediction.shape != (*valid.shape, c):
-                raise ValueError(
-                    f"integrate: probabilities {prediction.shape}, expected {(*valid.shape, c)}"
-                )
+        else:
             probs = prediction[valid].astype(np.float32)
             frame_keys, inverse = np.unique(keys, return_inverse=True)
             order = np.argsort(inverse, kind="stable")
@@ -214,14 +292,8 @@ class VoxelSemanticMap:
                 if probs.size
                 else np.zeros((0, c), np.float32)
             )
-        else:
-            raise ValueError(
-                f"integrate: expected (H, W) labels or (H, W, C) probabilities, got {prediction.shape}"
-            )
         self._fuse_distances(*self._frame_distances(depth, valid, pose, intrinsics))
         self._add(frame_keys, frame_scores.astype(np.float32))
-        self.frames_integrated += 1
-        self._surface = None
         return int(keys.size)
 
     def _frame_distances(
@@ -293,9 +365,9 @@ class VoxelSemanticMap:
         self.tsdf[r] = (self.tsdf[r] * old + sdf[seen] * new) / (old + new)
         self.weights[r] = old + new
         at = np.searchsorted(self.tsdf_keys, keys[~seen])
-        self.tsdf_keys = np.insert(self.tsdf_keys, at, keys[~seen])
-        self.tsdf = np.insert(self.tsdf, at, sdf[~seen])
-        self.weights = np.insert(self.weights, at, weight[~seen])
+        self._tsdf_keys = np.insert(self.tsdf_keys, at, keys[~seen])
+        self._tsdf = np.insert(self.tsdf, at, sdf[~seen])
+        self._weights = np.insert(self.weights, at, weight[~seen])
 
     def _add(self, keys: np.ndarray, scores: np.ndarray) -> None:
         if keys.size == 0:
@@ -305,7 +377,7 @@ class VoxelSemanticMap:
         n_old = self.keys.size
         out[inverse[:n_old]] = self.scores
         out[inverse[n_old:]] += scores
-        self.keys, self.scores = merged, out
+        self._keys, self._scores = merged, out
 
     def lookup(self, keys: np.ndarray) -> np.ndarray:
         """Row of each key in ``scores``, or -1 where the voxel has no scores."""
@@ -317,6 +389,8 @@ class VoxelSemanticMap:
         where it meets none within ``max_range``, or no votes lie near that point; see
         :meth:`_scores_near`), and (H, W) float32 z-depth of that point (0 where the ray meets
         no surface)."""
+        if self.backend == "torch":
+            return _raycast_torch(self, pose, intrinsics)
         h, w = intrinsics.height, intrinsics.width
         labels = np.zeros(h * w, dtype=np.uint8)
         depth = np.zeros(h * w, dtype=np.float32)
@@ -351,6 +425,8 @@ class VoxelSemanticMap:
         """(H, W) uint8 NYU40 labels read through a view's own depth instead of by ray casting:
         the class of the voxel at each pixel's measured surface point (0 where the pixel has
         no depth or no scores are near that voxel). Kept to measure what ray casting changes."""
+        if self.backend == "torch":
+            return _labels_at_depth_torch(self, depth, pose, intrinsics)
         keys, valid = self._surface_keys(depth, pose, intrinsics)
         scores = self._scores_at(keys)
         labels = np.where(scores.max(axis=1) > 0, scores.argmax(axis=1) + 1, UNKNOWN)
@@ -361,7 +437,7 @@ class VoxelSemanticMap:
     def _surface_index(self) -> _Surface | None:
         if self._surface is None and (self.tsdf <= 0).any():
             self._surface = _Surface(self)
-        return self._surface
+        return self._surface if isinstance(self._surface, _Surface) else None
 
     def _scores_near(self, surface: _Surface, points: np.ndarray) -> np.ndarray:
         """Scores (N, C) at world points (N, 3): those of the eight voxels whose centres
@@ -754,3 +830,523 @@ def _walk(cell0: np.ndarray, step: np.ndarray, axis: np.ndarray) -> np.ndarray:
     counts = np.stack([np.cumsum(axis == a, axis=1) for a in range(3)], axis=-1)
     counts = np.concatenate([np.zeros((axis.shape[0], 1, 3), np.int64), counts], axis=1)
     return cell0[:, None, :] + step[:, None, :] * counts
+
+
+# The torch implementation (``backend="torch"``, the default): the algorithm above on the map's
+# device, every step a tensor operation over all pixels, voxels or rays of a view.
+
+_T_SAMPLES = 8  # half-voxel samples per ray and march iteration near surfaces
+_T_SKIP = 8  # the march's distance field counts up to this many cells
+_T_RAY_CHUNK = 1 << 18  # rays marched together
+_T_CORNERS = torch.tensor(list(np.ndindex(2, 2, 2)), dtype=torch.int64)  # (8, 3)
+
+
+def _as_numpy(a: np.ndarray | Tensor) -> np.ndarray:
+    return a if isinstance(a, np.ndarray) else a.detach().cpu().numpy()
+
+
+def _nbytes(a: np.ndarray | Tensor) -> int:
+    return int(a.nbytes) if isinstance(a, np.ndarray) else a.element_size() * a.numel()
+
+
+def _t_pack(cells: Tensor) -> Tensor:
+    """:func:`pack_keys` of integer cells (..., 3) on any device."""
+    shifted = cells + _OFFSET
+    if shifted.numel() and bool(((shifted.min() < 0) | (shifted.max() > _MASK)).item()):
+        raise ValueError(
+            "voxel map: a point lies farther than 2^20 voxels from the origin; check units"
+        )
+    return (shifted[..., 0] << (2 * _BITS)) | (shifted[..., 1] << _BITS) | shifted[..., 2]
+
+
+def _t_unpack(keys: Tensor) -> Tensor:
+    """:func:`unpack_keys` on any device."""
+    cells = torch.stack([keys >> (2 * _BITS), (keys >> _BITS) & _MASK, keys & _MASK], dim=-1)
+    return cells - _OFFSET
+
+
+def _t_rows_of(sorted_keys: Tensor, keys: Tensor) -> Tensor:
+    """Row of each key in ``sorted_keys``, or -1 where it is absent."""
+    if sorted_keys.numel() == 0:
+        return torch.full_like(keys, -1)
+    rows = torch.searchsorted(sorted_keys, keys).clamp_(max=sorted_keys.numel() - 1)
+    return torch.where(sorted_keys[rows] == keys, rows, -1)
+
+
+def _t_merge(old: Tensor, new: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Sorted unique keys ``new`` merged into sorted unique ``old``: the merged keys and the row
+    of each old and of each new key in them."""
+    rows = _t_rows_of(old, new)
+    hit = rows >= 0
+    fresh = new[~hit]
+    at_old = torch.arange(old.numel(), device=old.device)
+    if fresh.numel():
+        at_old += torch.searchsorted(fresh, old)
+    at_fresh = torch.searchsorted(old, fresh) + torch.arange(fresh.numel(), device=old.device)
+    merged = torch.empty(old.numel() + fresh.numel(), dtype=old.dtype, device=old.device)
+    merged[at_old] = old
+    merged[at_fresh] = fresh
+    at_new = torch.empty_like(new)
+    at_new[hit] = at_old[rows[hit]]
+    at_new[~hit] = at_fresh
+    return merged, at_old, at_new
+
+
+def _t_box(cells: Tensor) -> tuple[Tensor, list[int], Tensor, bool]:
+    """:func:`_box` on any device."""
+    lo = cells.amin(dim=0) - 1
+    shape = [int(v) for v in (cells.amax(dim=0) + 2 - lo).tolist()]
+    strides = torch.tensor([shape[1] * shape[2], shape[2], 1], device=cells.device)
+    return lo, shape, strides, math.prod(shape) <= MAX_DENSE_CELLS
+
+
+def _t_frame_rays(
+    voxel_map: VoxelSemanticMap, valid: np.ndarray, pose: np.ndarray, intrinsics: Intrinsics
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The camera centre (3,), the rays (N, 3) of the pixels with depth (unit z in the camera,
+    as :func:`pixel_rays`) and the flat (H * W,) mask of those pixels, on the map's device."""
+    origins, dirs = pixel_rays(intrinsics, np.asarray(pose, dtype=np.float64))
+    dev = voxel_map.device
+    mask = torch.from_numpy(valid.reshape(-1)).to(dev)
+    return (
+        torch.from_numpy(origins[0, 0].copy()).to(dev),
+        torch.from_numpy(dirs.reshape(-1, 3)).to(dev)[mask],
+        mask,
+    )
+
+
+def _t_surface_keys(
+    voxel_map: VoxelSemanticMap, depth: np.ndarray, valid: np.ndarray, dirs: Tensor, origin: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Keys (N,) of the voxels the pixels with depth fall in, and their z-depths (N,)."""
+    z = torch.from_numpy(depth[valid]).to(voxel_map.device)
+    points = origin + dirs * z[:, None].double()
+    return _t_pack(torch.floor(points / voxel_map.voxel_size).long()), z
+
+
+def _integrate_torch(
+    voxel_map: VoxelSemanticMap,
+    prediction: np.ndarray,
+    depth: np.ndarray,
+    valid: np.ndarray,
+    pose: np.ndarray,
+    intrinsics: Intrinsics,
+) -> int:
+    """:meth:`VoxelSemanticMap.integrate` of a checked frame, on the map's device."""
+    dev, c = voxel_map.device, voxel_map.config.num_classes
+    origin, dirs, mask = _t_frame_rays(voxel_map, valid, pose, intrinsics)
+    keys, z = _t_surface_keys(voxel_map, depth, valid, dirs, origin)
+    flat = torch.from_numpy(np.ascontiguousarray(prediction)).to(dev)
+    if prediction.ndim == 2:
+        labels = flat.reshape(-1)[mask].long()
+        voted = labels > UNKNOWN
+        keys, labels = keys[voted], labels[voted] - 1
+        frame_keys, inverse = torch.unique(keys, return_inverse=True)
+        frame_scores = torch.zeros(frame_keys.numel() * c, device=dev)
+        frame_scores.index_add_(
+            0, inverse * c + labels, torch.ones_like(frame_scores[:1]).expand(labels.numel())
+        )
+        frame_scores = frame_scores.view(-1, c)
+    else:
+        probs = flat.reshape(-1, c)[mask].float()
+        frame_keys, inverse = torch.unique(keys, return_inverse=True)
+        frame_scores = torch.zeros((frame_keys.numel(), c), device=dev)
+        frame_scores.index_add_(0, inverse, probs)
+    _t_fuse_distances(
+        voxel_map, *_t_frame_distances(voxel_map, depth, valid, dirs, z, origin, pose, intrinsics)
+    )
+    if frame_keys.numel():
+        merged, at_old, at_new = _t_merge(voxel_map._keys, frame_keys)
+        scores = torch.zeros((merged.numel(), c), device=dev)
+        scores[at_old] = voxel_map._scores
+        scores.index_add_(0, at_new, frame_scores)
+        voxel_map._keys, voxel_map._scores = merged, scores
+    return int(keys.numel())
+
+
+def _t_frame_distances(
+    voxel_map: VoxelSemanticMap,
+    depth: np.ndarray,
+    valid: np.ndarray,
+    dirs: Tensor,
+    z: Tensor,
+    origin: Tensor,
+    pose: np.ndarray,
+    intrinsics: Intrinsics,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:meth:`VoxelSemanticMap._frame_distances` on the map's device, the candidate voxels
+    gathered in a dense grid over the frame's box where it fits."""
+    dev = voxel_map.device
+    size, trunc = voxel_map.voxel_size, voxel_map.truncation_m
+    if dirs.shape[0] == 0:
+        empty = torch.zeros(0, device=dev)
+        return torch.zeros(0, dtype=torch.int64, device=dev), empty, empty
+    norm = torch.sqrt((dirs * dirs).sum(dim=1))
+    along = z.double() * norm
+    unit = dirs / norm[:, None]
+    offsets = torch.from_numpy(np.arange(-trunc, trunc + 0.25 * size, 0.5 * size)).to(dev)
+    parts = []
+    for i in range(0, along.numel(), _PIXEL_CHUNK):
+        t = torch.clamp(along[i : i + _PIXEL_CHUNK, None] + offsets, min=0.0)
+        points = origin + t[..., None] * unit[i : i + _PIXEL_CHUNK, None, :]
+        parts.append(torch.floor(points / size).long().reshape(-1, 3))
+    cells = torch.cat(parts)
+    lo, shape, strides, dense = _t_box(cells)
+    if dense:
+        grid = torch.zeros(math.prod(shape), dtype=torch.bool, device=dev)
+        grid[((cells - lo) * strides).sum(dim=1)] = True
+        g = grid.view(shape)
+        band = g.clone()  # ... and the six face neighbours (see the reference)
+        band[1:] |= g[:-1]
+        band[:-1] |= g[1:]
+        band[:, 1:] |= g[:, :-1]
+        band[:, :-1] |= g[:, 1:]
+        band[:, :, 1:] |= g[:, :, :-1]
+        band[:, :, :-1] |= g[:, :, 1:]
+        flat = band.view(-1).nonzero().squeeze(1)  # sorted, as are the keys of the cells
+        cand = torch.stack([flat // strides[0], flat // strides[1] % shape[1], flat % shape[2]], 1)
+        cand += lo
+        keys = _t_pack(cand)
+    else:
+        keys = torch.unique(_t_pack(cells))
+        deltas = torch.from_numpy(_FACE_DELTAS).to(dev)
+        keys = torch.unique((keys[:, None] + deltas).reshape(-1))
+        cand = _t_unpack(keys)
+    centres = (cand.double() + 0.5) * size
+    pose_t = torch.from_numpy(np.asarray(pose, dtype=np.float64)).to(dev)
+    cam = (centres - pose_t[:3, 3]) @ pose_t[:3, :3]
+    zc = cam[:, 2]
+    u = intrinsics.fx * cam[:, 0] / zc + intrinsics.cx
+    v = intrinsics.fy * cam[:, 1] / zc + intrinsics.cy
+    h, w = depth.shape
+    seen = (zc > 0) & (u > -2.5) & (u < w + 1.5) & (v > -2.5) & (v < h + 1.5)
+    keys, zc, u, v = keys[seen], zc[seen], u[seen], v[seen]
+    depth_t = torch.from_numpy(np.where(valid, depth, 0.0).astype(np.float32)).to(dev)
+    measured, ok = _t_depth_at(depth_t, depth_t > 0, u, v, jump=trunc)
+    ray = torch.sqrt(
+        ((u - intrinsics.cx) / intrinsics.fx) ** 2
+        + ((v - intrinsics.cy) / intrinsics.fy) ** 2
+        + 1.0
+    )
+    sdf = (measured - zc) * ray
+    keep = ok & (sdf > -trunc)
+    sdf = sdf[keep]
+    weight = torch.clamp((trunc + sdf) / (trunc - size), max=1.0).float()
+    return keys[keep], torch.clamp(sdf, max=trunc).float(), weight
+
+
+def _t_depth_at(
+    depth: Tensor, valid: Tensor, u: Tensor, v: Tensor, jump: float
+) -> tuple[Tensor, Tensor]:
+    """:func:`_depth_at` on any device."""
+    h, w = depth.shape
+    flat_d, flat_ok = depth.reshape(-1), valid.reshape(-1)
+    u0 = torch.clamp(torch.floor(u), 0, w - 1).long()
+    v0 = torch.clamp(torch.floor(v), 0, h - 1).long()
+    u1, v1 = torch.clamp(u0 + 1, max=w - 1), torch.clamp(v0 + 1, max=h - 1)
+    fu, fv = torch.clamp(u - u0, 0.0, 1.0), torch.clamp(v - v0, 0.0, 1.0)
+    idx = torch.stack([v0 * w + u0, v0 * w + u1, v1 * w + u0, v1 * w + u1])
+    d = flat_d[idx].double()
+    ok = flat_ok[idx]
+    bilinear = (d[0] * (1 - fu) + d[1] * fu) * (1 - fv) + (d[2] * (1 - fu) + d[3] * fu) * fv
+    smooth = ok.all(dim=0) & (d.amax(dim=0) - d.amin(dim=0) <= jump)
+    un = torch.clamp(torch.round(u), 0, w - 1).long()
+    vn = torch.clamp(torch.round(v), 0, h - 1).long()
+    near = vn * w + un
+    return torch.where(smooth, bilinear, flat_d[near].double()), smooth | flat_ok[near]
+
+
+def _t_fuse_distances(
+    voxel_map: VoxelSemanticMap, keys: Tensor, sdf: Tensor, weight: Tensor
+) -> None:
+    """:meth:`VoxelSemanticMap._fuse_distances` on the map's device."""
+    if keys.numel() == 0:
+        return
+    merged, at_old, at_new = _t_merge(voxel_map._tsdf_keys, keys)
+    tsdf = torch.zeros(merged.numel(), device=keys.device)
+    weights = torch.zeros(merged.numel(), device=keys.device)
+    tsdf[at_old] = voxel_map._tsdf
+    weights[at_old] = voxel_map._weights
+    old, before = weights[at_new], tsdf[at_new]
+    total = old + weight
+    tsdf[at_new] = torch.where(old > 0, (before * old + sdf * weight) / total, sdf)
+    weights[at_new] = total
+    voxel_map._tsdf_keys, voxel_map._tsdf, voxel_map._weights = merged, tsdf, weights
+
+
+class _TorchCells:
+    """:class:`_CellValues` on any device: values at integer cells (N, 3), ``fill`` elsewhere."""
+
+    def __init__(self, cells: Tensor, values: Tensor, fill: float | int):
+        self.lo, self.shape, self.strides, self.dense = _t_box(cells)
+        shape = self.shape
+        self.hi = self.lo + torch.tensor(shape, device=cells.device)
+        self.fill = fill
+        self.corners = _T_CORNERS.to(cells.device)
+        if self.dense:
+            self.grid = torch.full(
+                (math.prod(shape),), fill, dtype=values.dtype, device=cells.device
+            )
+            self.grid[((cells - self.lo) * self.strides).sum(dim=1)] = values
+            self.offsets = self.corners @ self.strides
+        else:
+            keys = _t_pack(cells)
+            order = torch.argsort(keys)
+            self.keys, self.values = keys[order], values[order]
+
+    def cube(self, base: Tensor) -> Tensor:
+        """Values (..., 8) at the cells ``base + corner`` (..., 3), as :meth:`_CellValues.cube`."""
+        inside = ((base >= self.lo) & (base + 1 < self.hi)).all(dim=-1)
+        if self.dense:
+            flat = torch.where(inside, ((base - self.lo) * self.strides).sum(dim=-1), 0)
+            out = self.grid[flat[..., None] + self.offsets]
+        else:
+            cells = torch.where(inside[..., None], base, self.lo)[..., None, :] + self.corners
+            rows = _t_rows_of(self.keys, _t_pack(cells))
+            out = torch.where(rows >= 0, self.values[rows.clamp(min=0)], self.fill)
+        return torch.where(inside[..., None], out, self.fill)
+
+
+def _t_trilinear(points: Tensor, voxel_size: float) -> tuple[Tensor, Tensor]:
+    """:func:`_trilinear` on any device (weights in the points' float type)."""
+    g = points / voxel_size - 0.5
+    base = torch.floor(g)
+    f = g - base
+    wx, wy, wz = (torch.stack([1.0 - f[..., a], f[..., a]], dim=-1) for a in range(3))
+    weights = wx[..., :, None, None] * wy[..., None, :, None] * wz[..., None, None, :]
+    return base.long(), weights.flatten(-3)
+
+
+class _TorchSurface:
+    """:class:`_Surface` on any device, with another march: the rays are sampled every half
+    voxel from the camera (``t = k * step``, integer ``k``), and skip empty space with a
+    distance field on the voxel grid: for each cell, how many cells away (Chebyshev, up to
+    ``_T_SKIP``) the nearest stopping cell is (a cell within one of a voxel with a non-positive
+    distance; a sample elsewhere is positive or unobserved, see :class:`_Surface`). A ray at a
+    cell ``D >= 2`` cells from one advances ``D - 1`` voxels at once (every point on the way
+    is in a cell less than ``D`` away from its own); nearer, it takes ``_T_SAMPLES`` samples,
+    of which only those in stopping cells are interpolated. A ray stops at the first sample
+    with a non-positive distance whose predecessor's is not. Dense maps only; a map too large
+    for a dense grid interpolates every sample near its surfaces instead."""
+
+    def __init__(self, voxel_map: VoxelSemanticMap):
+        self.voxel_size = size = voxel_map.voxel_size
+        cells, tsdf = _t_unpack(voxel_map._tsdf_keys), voxel_map._tsdf
+        dev = cells.device
+        self.distances = _TorchCells(cells, tsdf, fill=math.nan)
+        stop = cells[tsdf <= 0]
+        # The stopping cells' box, in metres.
+        self.lo = (stop.amin(dim=0) - 1).double() * size
+        self.hi = (stop.amax(dim=0) + 2).double() * size
+        self.field: Tensor | None = None
+        if self.distances.dense:
+            d = self.distances
+            shape = d.shape
+            grid = d.grid.view(shape)
+            # Trilinear sampling by grid_sample: the distances (0 where unobserved) and
+            # whether observed, so that the sample is the reference's weighted mean.
+            seen = ~torch.isnan(grid)
+            self.volume = torch.stack([torch.where(seen, grid, 0.0), seen.float()])[None]
+            self.grid_lo = d.lo.float()
+            self.grid_scale = 2.0 / (torch.tensor(shape, device=dev) - 1).float()
+            near = (grid <= 0).float()[None, None]
+            field = torch.full(shape, _T_SKIP, dtype=torch.int32, device=dev)
+            for i in range(_T_SKIP):
+                near = _dilate(near)  # i == 0: the stopping cells
+                field[(near[0, 0] > 0) & (field == _T_SKIP)] = i
+            self.field = field.reshape(-1)
+            self.field_shape = torch.tensor(shape, device=dev)
+            self.field_strides = d.strides.tolist()
+        n = voxel_map.num_voxels
+        self.rows = (
+            _TorchCells(
+                _t_unpack(voxel_map._keys),
+                torch.arange(n, dtype=torch.int32, device=dev),
+                fill=-1,
+            )
+            if n
+            else None
+        )
+
+    def sample(self, points: Tensor) -> Tensor:
+        """:meth:`_Surface.sample` of points (M, 3)."""
+        if self.field is None:
+            base, weights = _t_trilinear(points, self.voxel_size)
+            values = self.distances.cube(base)
+            seen = ~torch.isnan(values)
+            weights = torch.where(seen, weights, 0.0)
+            total = (weights * torch.where(seen, values, 0.0)).sum(dim=-1)
+            wsum = weights.sum(dim=-1)
+        else:
+            g = (points / self.voxel_size - 0.5 - self.grid_lo) * self.grid_scale - 1.0
+            out = torch.nn.functional.grid_sample(
+                self.volume, g.flip(-1).view(1, 1, 1, -1, 3), align_corners=True
+            ).view(2, -1)
+            total, wsum = out[0], out[1]
+        return torch.where(wsum > 1e-6, total / wsum, math.nan)
+
+    def _field_at(self, points: Tensor) -> Tensor:
+        """Distance field (M,) at points (M, 3). A point outside the grid takes the value of the
+        nearest cell in it, which is never farther from a stopping cell."""
+        assert self.field is not None
+        cells = torch.floor(points / self.voxel_size).long() - self.distances.lo
+        cells = torch.minimum(cells.clamp_(min=0), self.field_shape - 1)
+        flat = cells[:, 0] * self.field_strides[0] + cells[:, 1] * self.field_strides[1]
+        return self.field[flat.add_(cells[:, 2])]
+
+    def first_crossing(self, origin: Tensor, dirs: Tensor, max_range: float) -> Tensor:
+        """:meth:`_Surface.first_crossing` (float32 (N,), NaN where none) of unit rays (N, 3)
+        from ``origin`` (3,), by the march above."""
+        dev = dirs.device
+        out = torch.full((dirs.shape[0],), math.nan, device=dev)
+        t_lo = (self.lo - origin) / dirs
+        t_hi = (self.hi - origin) / dirs
+        near = torch.nan_to_num(torch.minimum(t_lo, t_hi), nan=-math.inf).amax(dim=1)
+        far = torch.nan_to_num(torch.maximum(t_lo, t_hi), nan=math.inf).amin(dim=1)
+        near = near.clamp(min=0.0)
+        far = far.clamp(max=max_range)
+        rays = (near < far).nonzero().squeeze(1)
+        step = 0.5 * self.voxel_size
+        k = torch.floor(near[rays] / step).long()  # each ray's next sample is at k * step
+        end = far[rays].float()
+        o = origin.float()
+        d = dirs[rays].float()
+        # Whether the sample before each ray's next one is non-positive.
+        negative = self.sample(o + ((k - 1).float() * step)[:, None] * d) <= 0
+        window = torch.arange(_T_SAMPLES, device=dev)
+        while rays.numel():
+            if self.field is not None:
+                skip = self._field_at(o + (k.float() * step)[:, None] * d) - 1
+                skip = torch.where(skip > 0, 2 * skip, 0)  # half-voxel steps
+                negative &= skip == 0  # the skipped samples are positive or unobserved
+                k = k + skip
+                close = (skip == 0).nonzero().squeeze(1)
+            else:
+                close = torch.arange(rays.numel(), device=dev)
+            done = torch.zeros(rays.numel(), dtype=torch.bool, device=dev)
+            if close.numel():
+                ks, ds = k[close, None] + window, d[close]
+                ts = ks.float() * step
+                points = (o + ts[..., None] * ds[:, None, :]).view(-1, 3)
+                if self.field is None:
+                    f = self.sample(points).view(ts.shape)
+                else:
+                    f = torch.full(ts.shape, math.nan, device=dev)
+                    stopping = (self._field_at(points) == 0).nonzero().squeeze(1)
+                    f.view(-1)[stopping] = self.sample(points[stopping])
+                after = f <= 0
+                before = torch.cat([negative[close, None], after[:, :-1]], dim=1)
+                enter = after & ~before & (ts <= end[close, None])
+                found = enter.any(dim=1)
+                j = enter.to(torch.uint8).argmax(dim=1, keepdim=True)[found]
+                hit = close[found]
+                t = ts[found].gather(1, j).squeeze(1)
+                a = f[found].gather(1, j).squeeze(1)
+                # The sample before the crossing, interpolated even where not in a stopping cell.
+                t_before = (ks[found].gather(1, j).squeeze(1) - 1).float() * step
+                b = self.sample(o + t_before[:, None] * d[hit])
+                out[rays[hit]] = t + torch.where(b > 0, step * a / (b - a), 0.0)
+                done[hit] = True
+                negative[close] = after[:, -1]
+                k[close] += _T_SAMPLES
+            going = (~done & (k.float() * step <= end)).nonzero().squeeze(1)
+            rays, k, end, d, negative = rays[going], k[going], end[going], d[going], negative[going]
+        return out
+
+
+def _dilate(mask: Tensor) -> Tensor:
+    """A (1, 1, X, Y, Z) 0/1 grid grown by one cell along each axis and diagonal (3x3x3 max),
+    as three one-axis passes."""
+    for kernel in ((3, 1, 1), (1, 3, 1), (1, 1, 3)):
+        pad = tuple(k // 2 for k in kernel)
+        mask = torch.nn.functional.max_pool3d(mask, kernel, stride=1, padding=pad)
+    return mask
+
+
+def _t_surface(voxel_map: VoxelSemanticMap) -> _TorchSurface | None:
+    if voxel_map._surface is None and bool((voxel_map._tsdf <= 0).any().item()):
+        voxel_map._surface = _TorchSurface(voxel_map)
+    return voxel_map._surface if isinstance(voxel_map._surface, _TorchSurface) else None
+
+
+def _raycast_torch(
+    voxel_map: VoxelSemanticMap, pose: np.ndarray, intrinsics: Intrinsics
+) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`VoxelSemanticMap.raycast` on the map's device."""
+    h, w = intrinsics.height, intrinsics.width
+    surface = _t_surface(voxel_map)
+    if surface is None:
+        return np.zeros((h, w), dtype=np.uint8), np.zeros((h, w), dtype=np.float32)
+    origin, dirs, _ = _t_frame_rays(voxel_map, np.ones((h, w), dtype=bool), pose, intrinsics)
+    norm = torch.sqrt((dirs * dirs).sum(dim=1))
+    unit = dirs / norm[:, None]
+    t = torch.cat(
+        [
+            surface.first_crossing(origin, unit[i : i + _T_RAY_CHUNK], voxel_map.config.max_range)
+            for i in range(0, unit.shape[0], _T_RAY_CHUNK)
+        ]
+    )
+    rays = torch.isfinite(t).nonzero().squeeze(1)
+    hit_t = t[rays].double()
+    scores = _t_scores_near(voxel_map, surface, origin + hit_t[:, None] * unit[rays])
+    found = scores.amax(dim=1) > 0
+    labels = torch.zeros(h * w, dtype=torch.uint8, device=dirs.device)
+    depth = torch.zeros(h * w, dtype=torch.float32, device=dirs.device)
+    labels[rays] = torch.where(found, scores.argmax(dim=1) + 1, UNKNOWN).to(torch.uint8)
+    depth[rays] = (hit_t / norm[rays]).float()
+    return _as_numpy(labels.view(h, w)), _as_numpy(depth.view(h, w))
+
+
+def _labels_at_depth_torch(
+    voxel_map: VoxelSemanticMap, depth: np.ndarray, pose: np.ndarray, intrinsics: Intrinsics
+) -> np.ndarray:
+    """:meth:`VoxelSemanticMap.labels_at_depth` on the map's device."""
+    depth = _check_depth(depth, intrinsics)
+    valid = np.isfinite(depth) & (depth > 0)
+    origin, dirs, mask = _t_frame_rays(voxel_map, valid, pose, intrinsics)
+    keys = _t_surface_keys(voxel_map, depth, valid, dirs, origin)[0]
+    scores = _t_scores_at(voxel_map, keys)
+    labels = torch.where(scores.amax(dim=1) > 0, scores.argmax(dim=1) + 1, UNKNOWN)
+    out = torch.zeros(mask.numel(), dtype=torch.uint8, device=mask.device)
+    out[mask] = labels.to(torch.uint8)
+    return _as_numpy(out.view(valid.shape))
+
+
+def _t_scores_near(voxel_map: VoxelSemanticMap, surface: _TorchSurface, points: Tensor) -> Tensor:
+    """:meth:`VoxelSemanticMap._scores_near` on the map's device."""
+    n, c = points.shape[0], voxel_map.config.num_classes
+    scores = torch.zeros((n, c), device=points.device)
+    if surface.rows is None or n == 0:
+        return scores
+    base, weights = _t_trilinear(points, voxel_map.voxel_size)
+    weights = weights.float()
+    rows = surface.rows.cube(base).long()
+    for k in range(8):
+        hit = rows[:, k] >= 0
+        w = torch.where(hit, weights[:, k], 0.0)
+        scores += w[:, None] * voxel_map._scores[rows[:, k].clamp(min=0)]
+    none = (~(scores.amax(dim=1) > 0)).nonzero().squeeze(1)
+    if none.numel():
+        cells = torch.floor(points[none] / voxel_map.voxel_size).long()
+        scores[none] = _t_scores_at(voxel_map, _t_pack(cells))
+    return scores
+
+
+def _t_scores_at(voxel_map: VoxelSemanticMap, keys: Tensor) -> Tensor:
+    """:meth:`VoxelSemanticMap._scores_at` on the map's device."""
+    rows = _t_rows_of(voxel_map._keys, keys)
+    c = voxel_map.config.num_classes
+    scores = torch.zeros((keys.numel(), c), device=keys.device)
+    hit = rows >= 0
+    scores[hit] = voxel_map._scores[rows[hit]]
+    r = voxel_map.config.search_radius
+    missing = (~hit).nonzero().squeeze(1)
+    if r == 0 or missing.numel() == 0 or voxel_map.num_voxels == 0:
+        return scores
+    cells = _t_unpack(keys[missing])
+    gathered = torch.zeros((missing.numel(), c), device=keys.device)
+    for offset in torch.from_numpy(_cube_offsets(r)).to(keys.device):
+        rows = _t_rows_of(voxel_map._keys, _t_pack(cells + offset))
+        gathered += torch.where((rows >= 0)[:, None], voxel_map._scores[rows.clamp(min=0)], 0.0)
+    scores[missing] = gathered
+    return scores
