@@ -1088,7 +1088,7 @@ class _TorchCells:
                 (math.prod(shape),), fill, dtype=values.dtype, device=cells.device
             )
             self.grid[((cells - self.lo) * self.strides).sum(dim=1)] = values
-            self.offsets = self.corners @ self.strides
+            self.offsets = (self.corners * self.strides).sum(dim=1)
         else:
             keys = _t_pack(cells)
             order = torch.argsort(keys)
