@@ -835,8 +835,8 @@ def _walk(cell0: np.ndarray, step: np.ndarray, axis: np.ndarray) -> np.ndarray:
 # The torch implementation (``backend="torch"``, the default): the algorithm above on the map's
 # device, every step a tensor operation over all pixels, voxels or rays of a view.
 
-_T_SAMPLES = 8  # half-voxel samples per ray and march iteration near surfaces
-_T_SKIP = 8  # the march's distance field counts up to this many cells
+_T_PIECES = 8  # cells the exact traversal looks at per ray and march iteration
+_T_SKIP = 32  # the most voxels the march skips at once
 _T_RAY_CHUNK = 1 << 18  # rays marched together
 _T_CORNERS = torch.tensor(list(np.ndindex(2, 2, 2)), dtype=torch.int64)  # (8, 3)
 
@@ -985,33 +985,36 @@ def _t_frame_distances(
     along = z.double() * norm
     unit = dirs / norm[:, None]
     offsets = torch.from_numpy(np.arange(-trunc, trunc + 0.25 * size, 0.5 * size)).to(dev)
-    parts = []
+    # One axis at a time (contiguous tensors), the same arithmetic as the reference's points.
+    o, axes = origin.tolist(), unit.T.contiguous()
+    parts: list[list[Tensor]] = [[], [], []]
     for i in range(0, along.numel(), _PIXEL_CHUNK):
         t = torch.clamp(along[i : i + _PIXEL_CHUNK, None] + offsets, min=0.0)
-        points = origin + t[..., None] * unit[i : i + _PIXEL_CHUNK, None, :]
-        parts.append(torch.floor(points / size).long().reshape(-1, 3))
-    cells = torch.cat(parts)
-    lo, shape, strides, dense = _t_box(cells)
-    if dense:
-        grid = torch.zeros(math.prod(shape), dtype=torch.bool, device=dev)
-        grid[((cells - lo) * strides).sum(dim=1)] = True
-        g = grid.view(shape)
-        band = g.clone()  # ... and the six face neighbours (see the reference)
-        band[1:] |= g[:-1]
-        band[:-1] |= g[1:]
-        band[:, 1:] |= g[:, :-1]
-        band[:, :-1] |= g[:, 1:]
-        band[:, :, 1:] |= g[:, :, :-1]
-        band[:, :, :-1] |= g[:, :, 1:]
+        for a in range(3):
+            points = o[a] + t * axes[a, i : i + _PIXEL_CHUNK, None]
+            parts[a].append(torch.floor(points / size).long().view(-1))
+    cx, cy, cz = (torch.cat(p) for p in parts)
+    bounds = torch.stack([torch.stack([c.min(), c.max()]) for c in (cx, cy, cz)]).tolist()
+    lo = [b[0] - 1 for b in bounds]
+    shape = [b[1] + 2 - b[0] + 1 for b in bounds]
+    if math.prod(shape) <= MAX_DENSE_CELLS:
+        grid = torch.zeros(shape, dtype=torch.bool, device=dev)
+        grid.view(-1)[((cx - lo[0]) * shape[1] + (cy - lo[1])) * shape[2] + (cz - lo[2])] = True
+        band = grid.clone()  # ... and the six face neighbours (see the reference)
+        band[1:] |= grid[:-1]
+        band[:-1] |= grid[1:]
+        band[:, 1:] |= grid[:, :-1]
+        band[:, :-1] |= grid[:, 1:]
+        band[:, :, 1:] |= grid[:, :, :-1]
+        band[:, :, :-1] |= grid[:, :, 1:]
         flat = band.view(-1).nonzero().squeeze(1)  # sorted, as are the keys of the cells
-        cand = torch.stack([flat // strides[0], flat // strides[1] % shape[1], flat % shape[2]], 1)
-        cand += lo
-        keys = _t_pack(cand)
+        yz = shape[1] * shape[2]
+        cand = torch.stack([flat // yz, flat // shape[2] % shape[1], flat % shape[2]], 1)
+        cand += torch.tensor(lo, device=dev)
     else:
-        keys = torch.unique(_t_pack(cells))
+        keys = torch.unique(_t_pack(torch.stack([cx, cy, cz], dim=1)))
         deltas = torch.from_numpy(_FACE_DELTAS).to(dev)
-        keys = torch.unique((keys[:, None] + deltas).reshape(-1))
-        cand = _t_unpack(keys)
+        cand = _t_unpack(torch.unique((keys[:, None] + deltas).reshape(-1)))
     centres = (cand.double() + 0.5) * size
     pose_t = torch.from_numpy(np.asarray(pose, dtype=np.float64)).to(dev)
     cam = (centres - pose_t[:3, 3]) @ pose_t[:3, :3]
@@ -1020,7 +1023,7 @@ def _t_frame_distances(
     v = intrinsics.fy * cam[:, 1] / zc + intrinsics.cy
     h, w = depth.shape
     seen = (zc > 0) & (u > -2.5) & (u < w + 1.5) & (v > -2.5) & (v < h + 1.5)
-    keys, zc, u, v = keys[seen], zc[seen], u[seen], v[seen]
+    cand, zc, u, v = cand[seen], zc[seen], u[seen], v[seen]
     depth_t = torch.from_numpy(np.where(valid, depth, 0.0).astype(np.float32)).to(dev)
     measured, ok = _t_depth_at(depth_t, depth_t > 0, u, v, jump=trunc)
     ray = torch.sqrt(
@@ -1032,7 +1035,7 @@ def _t_frame_distances(
     keep = ok & (sdf > -trunc)
     sdf = sdf[keep]
     weight = torch.clamp((trunc + sdf) / (trunc - size), max=1.0).float()
-    return keys[keep], torch.clamp(sdf, max=trunc).float(), weight
+    return _t_pack(cand[keep]), torch.clamp(sdf, max=trunc).float(), weight
 
 
 def _t_depth_at(
@@ -1118,16 +1121,14 @@ def _t_trilinear(points: Tensor, voxel_size: float) -> tuple[Tensor, Tensor]:
 
 
 class _TorchSurface:
-    """:class:`_Surface` on any device, with another march: the rays are sampled every half
-    voxel from the camera (``t = k * step``, integer ``k``), and skip empty space with a
-    distance field on the voxel grid: for each cell, how many cells away (Chebyshev, up to
-    ``_T_SKIP``) the nearest stopping cell is (a cell within one of a voxel with a non-positive
-    distance; a sample elsewhere is positive or unobserved, see :class:`_Surface`). A ray at a
-    cell ``D >= 2`` cells from one advances ``D - 1`` voxels at once (every point on the way
-    is in a cell less than ``D`` away from its own); nearer, it takes ``_T_SAMPLES`` samples,
-    of which only those in stopping cells are interpolated. A ray stops at the first sample
-    with a non-positive distance whose predecessor's is not. Dense maps only; a map too large
-    for a dense grid interpolates every sample near its surfaces instead."""
+    """:class:`_Surface` on any device. The march is the reference's (windows of samples half
+    a voxel apart from where each ray enters a stopping cell, by an exact voxel traversal), but
+    it skips empty space with a distance field on the voxel grid instead of coarse cells: for
+    each cell, how many cells away (Chebyshev, up to ``_T_SKIP``) the nearest stopping cell is.
+    A ray in a cell ``D >= 2`` cells from one advances ``D - 1`` voxels at once (every point on
+    the way lies in a cell less than ``D`` away from its own); nearer, it walks the next
+    ``_T_PIECES`` cells exactly. Samples are interpolated by ``grid_sample``. Maps too large for
+    a dense grid look cells up in sorted keys and walk every cell."""
 
     def __init__(self, voxel_map: VoxelSemanticMap):
         self.voxel_size = size = voxel_map.voxel_size
@@ -1149,14 +1150,32 @@ class _TorchSurface:
             self.volume = torch.stack([torch.where(seen, grid, 0.0), seen.float()])[None]
             self.grid_lo = d.lo.float()
             self.grid_scale = 2.0 / (torch.tensor(shape, device=dev) - 1).float()
-            near = (grid <= 0).float()[None, None]
+            # The field: -1 at stopping cells, 0 at cells next to one, else how many voxels a
+            # ray may skip (r where the nearest stopping cell is more than r cells away, r a
+            # power of two up to _T_SKIP), found by growing the stopping cells 1, 2, 4 ... cells.
+            stopping = _dilate((grid <= 0).float()[None, None], 1)
+            grown = _dilate(stopping, 1)
             field = torch.full(shape, _T_SKIP, dtype=torch.int32, device=dev)
-            for i in range(_T_SKIP):
-                near = _dilate(near)  # i == 0: the stopping cells
-                field[(near[0, 0] > 0) & (field == _T_SKIP)] = i
+            field[grown[0, 0] > 0] = 0
+            r = 1
+            while 2 * r <= _T_SKIP:
+                grown = _dilate(grown, r)  # now 2r cells around the stopping cells
+                field[(grown[0, 0] > 0) & (field == _T_SKIP)] = r
+                r *= 2
+            field[stopping[0, 0] > 0] = -1
+            # Padded by _T_PIECES cells that are neither stopping nor skipped, so that the
+            # traversal's cells from one in the box need no bounds checks.
+            pad = _T_PIECES + 1
+            field = torch.nn.functional.pad(field[None], (pad,) * 6, value=0)[0]
             self.field = field.reshape(-1)
-            self.field_shape = torch.tensor(shape, device=dev)
-            self.field_strides = d.strides.tolist()
+            self.field_lo = d.lo - pad
+            self.field_shape = torch.tensor(field.shape, device=dev)
+            self.field_strides = torch.tensor(
+                [field.shape[1] * field.shape[2], field.shape[2], 1], device=dev
+            )
+        else:
+            grown = stop[:, None, :] + torch.from_numpy(_cube_offsets(1)).to(dev)
+            self.stop_keys = torch.unique(_t_pack(grown.reshape(-1, 3)))
         n = voxel_map.num_voxels
         self.rows = (
             _TorchCells(
@@ -1185,18 +1204,58 @@ class _TorchSurface:
             total, wsum = out[0], out[1]
         return torch.where(wsum > 1e-6, total / wsum, math.nan)
 
+    def _field_flat(self, cells: Tensor) -> Tensor:
+        """Flat index (R,) into the field of integer cells (R, 3), clamped into the grid."""
+        c = torch.minimum((cells - self.field_lo).clamp_(min=0), self.field_shape - 1)
+        return (c * self.field_strides).sum(dim=1)
+
     def _field_at(self, points: Tensor) -> Tensor:
-        """Distance field (M,) at points (M, 3). A point outside the grid takes the value of the
+        """The field (M,) at points (M, 3). A point outside the grid takes the value of the
         nearest cell in it, which is never farther from a stopping cell."""
-        assert self.field is not None
-        cells = torch.floor(points / self.voxel_size).long() - self.distances.lo
-        cells = torch.minimum(cells.clamp_(min=0), self.field_shape - 1)
-        flat = cells[:, 0] * self.field_strides[0] + cells[:, 1] * self.field_strides[1]
-        return self.field[flat.add_(cells[:, 2])]
+        return self.field[self._field_flat(torch.floor(points / self.voxel_size).long())]
+
+    def _enter_stop(
+        self, o: Tensor, d: Tensor, start: Tensor, end: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """One step of the exact voxel traversal of :func:`_first_stop` over ``_T_PIECES``
+        cells: for rays ``o + t d`` from ``start`` (R,), whether one of those cells before
+        ``end`` is a stopping cell and where the ray enters the first such (``start`` if it
+        begins in one), else where the last of them ends."""
+        size, n = self.voxel_size, _T_PIECES
+        x = (o + start[:, None] * d) / size  # (R, 3) in cells
+        step = torch.sign(d)
+        cell0 = torch.where(d < 0, torch.ceil(x) - 1, torch.floor(x))
+        k = torch.arange(n - 1, device=d.device, dtype=d.dtype)
+        planes = (cell0 + (d > 0))[:, :, None] + step[:, :, None] * k  # (R, 3, n - 1)
+        cross = start[:, None, None] + (planes - x[:, :, None]) * size / d[:, :, None]
+        cross = torch.where(torch.isfinite(cross), cross, math.inf).view(-1, 3 * (n - 1))
+        t, order = torch.sort(cross, dim=1)
+        t, axis = t[:, : n - 1], torch.div(order[:, : n - 1], n - 1, rounding_mode="floor")
+        # Pieces [start, t0], [t0, t1], ...: piece j's cell is the first one's moved a step
+        # along the axes of the first j crossings.
+        if self.field is not None:
+            flat0 = self._field_flat(cell0.long())
+            moves = (step.long() * self.field_strides).gather(1, axis).cumsum(dim=1)
+            flat = torch.cat([flat0[:, None], flat0[:, None] + moves], dim=1)
+            stop = self.field[flat] < 0
+        else:
+            moves = torch.nn.functional.one_hot(axis, 3) * step.long()[:, None, :]
+            cells = cell0.long()[:, None, :] + torch.cat(
+                [torch.zeros_like(moves[:, :1]), moves.cumsum(dim=1)], dim=1
+            )
+            stop = _t_rows_of(self.stop_keys, _t_pack(cells)) >= 0
+        enter = torch.maximum(torch.cat([start[:, None], t], dim=1), start[:, None])
+        leave = torch.cat([t, torch.full_like(t[:, :1], math.inf)], dim=1)
+        real = (torch.minimum(leave, end[:, None]) > enter) & (enter < end[:, None])
+        stop &= real
+        hit = stop.any(dim=1)
+        j = stop.to(torch.uint8).argmax(dim=1, keepdim=True)
+        return hit, torch.where(hit, enter.gather(1, j).squeeze(1), t[:, -1])
 
     def first_crossing(self, origin: Tensor, dirs: Tensor, max_range: float) -> Tensor:
         """:meth:`_Surface.first_crossing` (float32 (N,), NaN where none) of unit rays (N, 3)
-        from ``origin`` (3,), by the march above."""
+        from ``origin`` (3,): the same windows of samples from the same first stopping cells;
+        the traversal skips by the distance field instead of coarse cells."""
         dev = dirs.device
         out = torch.full((dirs.shape[0],), math.nan, device=dev)
         t_lo = (self.lo - origin) / dirs
@@ -1207,59 +1266,57 @@ class _TorchSurface:
         far = far.clamp(max=max_range)
         rays = (near < far).nonzero().squeeze(1)
         step = 0.5 * self.voxel_size
-        k = torch.floor(near[rays] / step).long()  # each ray's next sample is at k * step
-        end = far[rays].float()
         o = origin.float()
-        d = dirs[rays].float()
-        # Whether the sample before each ray's next one is non-positive.
-        negative = self.sample(o + ((k - 1).float() * step)[:, None] * d) <= 0
-        window = torch.arange(_T_SAMPLES, device=dev)
-        while rays.numel():
+        # Each ray's state in one row, compacted at once: start, end, direction, index.
+        state = torch.cat(
+            [near[rays, None], far[rays, None], dirs[rays], rays[:, None].double()], dim=1
+        ).float()
+        offsets = step * torch.arange(-1, _SURFACE_SAMPLES, device=dev, dtype=torch.float32)
+        while state.shape[0]:
+            start, end, d = state[:, 0], state[:, 1], state[:, 2:5]
             if self.field is not None:
-                skip = self._field_at(o + (k.float() * step)[:, None] * d) - 1
-                skip = torch.where(skip > 0, 2 * skip, 0)  # half-voxel steps
-                negative &= skip == 0  # the skipped samples are positive or unobserved
-                k = k + skip
-                close = (skip == 0).nonzero().squeeze(1)
+                # Skip ``skip`` voxels where the nearest stopping cell is farther.
+                skip = self._field_at(o + start[:, None] * d)
+                start = torch.where(skip > 0, start + skip * self.voxel_size, start)
+                close = (skip <= 0).nonzero().squeeze(1)
             else:
-                close = torch.arange(rays.numel(), device=dev)
-            done = torch.zeros(rays.numel(), dtype=torch.bool, device=dev)
+                close = torch.arange(state.shape[0], device=dev)
+            found_rows = close[:0]
             if close.numel():
-                ks, ds = k[close, None] + window, d[close]
-                ts = ks.float() * step
-                points = (o + ts[..., None] * ds[:, None, :]).view(-1, 3)
-                if self.field is None:
-                    f = self.sample(points).view(ts.shape)
-                else:
-                    f = torch.full(ts.shape, math.nan, device=dev)
-                    stopping = (self._field_at(points) == 0).nonzero().squeeze(1)
-                    f.view(-1)[stopping] = self.sample(points[stopping])
-                after = f <= 0
-                before = torch.cat([negative[close, None], after[:, :-1]], dim=1)
-                enter = after & ~before & (ts <= end[close, None])
+                ds, e = d[close], end[close]
+                hit, t_in = self._enter_stop(o, ds, start[close], e)
+                start[close] = t_in
+                # From the first stopping cell, a window of samples half a voxel apart.
+                win = close[hit]
+                t = t_in[hit, None] + offsets
+                f = self.sample((o + t[..., None] * ds[hit, None, :]).view(-1, 3)).view(t.shape)
+                before, after = f[:, :-1], f[:, 1:]
+                enter = (after <= 0) & ~(before <= 0) & (t[:, 1:] <= e[hit, None])
                 found = enter.any(dim=1)
-                j = enter.to(torch.uint8).argmax(dim=1, keepdim=True)[found]
-                hit = close[found]
-                t = ts[found].gather(1, j).squeeze(1)
-                a = f[found].gather(1, j).squeeze(1)
-                # The sample before the crossing, interpolated even where not in a stopping cell.
-                t_before = (ks[found].gather(1, j).squeeze(1) - 1).float() * step
-                b = self.sample(o + t_before[:, None] * d[hit])
-                out[rays[hit]] = t + torch.where(b > 0, step * a / (b - a), 0.0)
-                done[hit] = True
-                negative[close] = after[:, -1]
-                k[close] += _T_SAMPLES
-            going = (~done & (k.float() * step <= end)).nonzero().squeeze(1)
-            rays, k, end, d, negative = rays[going], k[going], end[going], d[going], negative[going]
+                j = enter.to(torch.uint8).argmax(dim=1, keepdim=True)
+                b, a = before.gather(1, j).squeeze(1), after.gather(1, j).squeeze(1)
+                t_cross = t[:, 1:].gather(1, j).squeeze(1)
+                t_cross = t_cross + torch.where(b > 0, step * a / (b - a), 0.0)
+                found_rows = win[found]
+                out[state[found_rows, 5].long()] = t_cross[found]
+                start[win] = t[:, -1]
+            going = start < end
+            going[found_rows] = False
+            state[:, 0] = start
+            state = state[going]
         return out
 
 
-def _dilate(mask: Tensor) -> Tensor:
-    """A (1, 1, X, Y, Z) 0/1 grid grown by one cell along each axis and diagonal (3x3x3 max),
-    as three one-axis passes."""
-    for kernel in ((3, 1, 1), (1, 3, 1), (1, 1, 3)):
-        pad = tuple(k // 2 for k in kernel)
-        mask = torch.nn.functional.max_pool3d(mask, kernel, stride=1, padding=pad)
+def _dilate(mask: Tensor, r: int) -> Tensor:
+    """A (1, 1, X, Y, Z) 0/1 grid of cells within ``r`` cells (Chebyshev) of a 1, from one
+    within ``r`` (or, for ``r = 1``, of a 1): a 3x3x3 maximum with dilation ``r``, as three
+    one-axis passes."""
+    for axis in range(3):
+        kernel, dilation, pad = [1, 1, 1], [1, 1, 1], [0] * 6
+        kernel[axis], dilation[axis], pad[5 - 2 * axis - 1 : 6 - 2 * axis] = 3, r, [r, r]
+        mask = torch.nn.functional.max_pool3d(
+            torch.nn.functional.pad(mask, pad), kernel, stride=1, dilation=dilation
+        )
     return mask
 
 
@@ -1319,12 +1376,16 @@ def _t_scores_near(voxel_map: VoxelSemanticMap, surface: _TorchSurface, points: 
     if surface.rows is None or n == 0:
         return scores
     base, weights = _t_trilinear(points, voxel_map.voxel_size)
-    weights = weights.float()
-    rows = surface.rows.cube(base).long()
-    for k in range(8):
-        hit = rows[:, k] >= 0
-        w = torch.where(hit, weights[:, k], 0.0)
-        scores += w[:, None] * voxel_map._scores[rows[:, k].clamp(min=0)]
+    rows = surface.rows.cube(base).view(-1)
+    voted = (rows >= 0).nonzero().squeeze(1)  # (point, corner) pairs with scores
+    # The weighted sum as a product with a sparse (points, voxels) matrix of the weights.
+    weights = torch.sparse_coo_tensor(
+        torch.stack([torch.div(voted, 8, rounding_mode="floor"), rows[voted].long()]),
+        weights.float().view(-1)[voted],
+        (n, voxel_map.num_voxels),
+        check_invariants=False,
+    )
+    scores = torch.sparse.mm(weights, voxel_map._scores)
     none = (~(scores.amax(dim=1) > 0)).nonzero().squeeze(1)
     if none.numel():
         cells = torch.floor(points[none] / voxel_map.voxel_size).long()

@@ -1,6 +1,6 @@
 """The voxel map's torch implementation against its numpy reference (``backend="numpy"``): the
-same map, the same depth read-back, and the same ray-cast labels but for a few pixels where the
-two marches' different sample positions move a surface crossing (docs/method.md "Baselines")."""
+same map, the same depth read-back, and the same ray casts (docs/method.md "Baselines"), but
+for float rounding (float32 marches in torch, float64 in numpy) that could flip a crossing."""
 
 from __future__ import annotations
 
@@ -59,9 +59,10 @@ def compare_reads(
     scene: Scene, reference: VoxelSemanticMap, ported: VoxelSemanticMap
 ) -> tuple[float, float, float]:
     """Over every view (the fused ones and the held-out ones): the share of pixels whose ray
-    cast label is equal, the share whose rays agree on meeting a surface, and the share of the
-    rays both stop whose depths are within 2 mm; the depth read-back must be identical."""
-    same = hit_same = close = pixels = both = 0
+    cast label is equal, the share whose rays agree on meeting a surface, and the largest
+    difference of the depths where both do; the depth read-back must be identical."""
+    same = hit_same = pixels = 0
+    worst = 0.0
     for frame in scene.frames:
         labels, depth = reference.raycast(frame.pose, scene.intrinsics)
         port_labels, port_depth = ported.raycast(frame.pose, scene.intrinsics)
@@ -69,14 +70,13 @@ def compare_reads(
         same += int((labels == port_labels).sum())
         hit_same += int(((depth > 0) == (port_depth > 0)).sum())
         stop = (depth > 0) & (port_depth > 0)
-        close += int((np.abs(depth - port_depth)[stop] < 2e-3).sum())
+        worst = max(worst, float(np.abs(depth - port_depth)[stop].max(initial=0.0)))
         pixels += labels.size
-        both += int(stop.sum())
         np.testing.assert_array_equal(
             ported.labels_at_depth(frame.depth, frame.pose, scene.intrinsics),
             reference.labels_at_depth(frame.depth, frame.pose, scene.intrinsics),
         )
-    return same / pixels, hit_same / pixels, close / both
+    return same / pixels, hit_same / pixels, worst
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -86,13 +86,12 @@ def test_torch_map_matches_the_numpy_reference(rooms, room: str, device: str) ->
     reference, ported = fused_pair(scene, device)
     assert ported.num_tsdf_voxels > 1000
     assert_same_map(reference, ported)
-    labels, hits, depths = compare_reads(scene, reference, ported)
-    # Measured on CPU: labels 99.83% (office) and 99.45% (apartment) equal, hits 100% and
-    # 99.82%, depths within 2 mm 98.8% and 93.8% (the noisy capture's TSDF is less linear
-    # between samples, so a crossing moves farther with the sample positions).
-    assert labels >= 0.99
-    assert hits >= 0.995
-    assert depths >= 0.93
+    labels, hits, depth_error = compare_reads(scene, reference, ported)
+    # Measured on CPU: every label and every hit equal, depths within 7 micrometres.
+    # The bounds leave room for rounding: a ray that grazes a surface can flip either way.
+    assert labels >= 0.9995
+    assert hits >= 0.9995
+    assert depth_error < 1e-4
 
 
 def test_torch_map_without_dense_grids_matches_too(rooms, monkeypatch) -> None:
@@ -102,9 +101,9 @@ def test_torch_map_without_dense_grids_matches_too(rooms, monkeypatch) -> None:
     reference, ported = fused_pair(scene, "cpu")
     assert_same_map(reference, ported)
     assert ported._surface is None
-    labels, hits, depths = compare_reads(scene, reference, ported)
-    assert ported._surface.field is None  # the march interpolated every sample near surfaces
-    assert labels >= 0.99 and hits >= 0.999 and depths >= 0.98
+    labels, hits, depth_error = compare_reads(scene, reference, ported)
+    assert ported._surface.field is None  # the march walked every cell near surfaces
+    assert labels >= 0.9995 and hits >= 0.9995 and depth_error < 1e-4  # measured 1, 1, 9 um
 
 
 def test_torch_map_fuses_probabilities_like_the_reference(rooms) -> None:
@@ -112,10 +111,8 @@ def test_torch_map_fuses_probabilities_like_the_reference(rooms) -> None:
     config = VoxelMapConfig(voxel_size=0.1, search_radius=2)
     reference, ported = fused_pair(scene, "cpu", config, probabilities=True)
     assert_same_map(reference, ported)
-    labels, hits, depths = compare_reads(scene, reference, ported)
-    # Measured: 99.79% equal labels; at 10 cm a crossing moves farther with the sample positions
-    # (94.5% of the depths within 2 mm).
-    assert labels >= 0.99 and hits >= 0.999 and depths >= 0.93
+    labels, hits, depth_error = compare_reads(scene, reference, ported)
+    assert labels >= 0.9995 and hits >= 0.9995 and depth_error < 1e-4  # measured 1, 1, 42 um
 
 
 def test_device_and_backend_options() -> None:
