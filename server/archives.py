@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import IO
 
+from server.errors import storage_full
+
 _CHUNK = 1 << 20
 MAX_TAR_HEADER_BYTES = 64 * 1024  # a pax or GNU long-name header: a path of a few kilobytes at most
 _EXTENDED_HEADERS = (tarfile.XHDTYPE, tarfile.XGLTYPE, tarfile.SOLARIS_XHDTYPE, tarfile.GNUTYPE_LONGNAME, tarfile.GNUTYPE_LONGLINK)
@@ -168,6 +170,8 @@ def _extract_tar(path: Path, root: Path, limits: ArchiveLimits) -> None:
     except (tarfile.TarError, EOFError, RecursionError, ValueError, zlib.error, lzma.LZMAError) as e:  # RecursionError: a chain of extended headers
         raise UnsafeArchive(f"not a readable tar archive ({e})") from None
     except OSError as e:  # the message, never the server's path
+        if storage_full(e):  # the server's disk, not the archive: answered 507
+            raise
         raise UnsafeArchive(f"not a readable tar archive ({_os_problem(e)})") from None
 
 
@@ -211,6 +215,8 @@ def _extract_zip(path: Path, root: Path, limits: ArchiveLimits) -> None:
     except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError, RuntimeError, ValueError, zlib.error, lzma.LZMAError) as e:  # RuntimeError: encrypted
         raise UnsafeArchive(f"not a readable zip archive ({e})") from None
     except OSError as e:  # the message, never the server's path
+        if storage_full(e):  # the server's disk, not the archive: answered 507
+            raise
         raise UnsafeArchive(f"not a readable zip archive ({_os_problem(e)})") from None
 
 

@@ -30,6 +30,7 @@ from pathlib import Path
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from server import faults
 from server.db.models import Artifact, Frame, ModelVersion, NerfCheckpoint
 
 log = logging.getLogger(__name__)
@@ -95,9 +96,11 @@ class ArtifactStore:
         tmp = Path(name)
         try:
             with os.fdopen(fd, "wb") as f:
+                faults.point("artifact.write")
                 f.write(data)
                 f.flush()
                 os.fsync(f.fileno())
+            faults.point("artifact.tmp_written")
             self._commit_tmp(tmp, sha)
         finally:
             tmp.unlink(missing_ok=True)
@@ -111,16 +114,19 @@ class ArtifactStore:
         tmp = Path(name)
         try:
             with open(path, "rb") as src, os.fdopen(fd, "wb") as dst:
+                faults.point("artifact.write")
                 while chunk := src.read(_CHUNK):
                     h.update(chunk)
                     size += len(chunk)
                     dst.write(chunk)
                 dst.flush()
                 os.fsync(dst.fileno())
+            faults.point("artifact.tmp_written")
             sha = h.hexdigest()
             self._commit_tmp(tmp, sha)
         finally:
             tmp.unlink(missing_ok=True)
+        faults.point("artifact.file_stored")
         return self._record(session, sha, size, kind, media_type)
 
     def _record(self, session: Session, sha: str, size: int, kind: str, media_type: str) -> StoredFile:
@@ -188,11 +194,12 @@ class ArtifactStore:
         session.flush()
         return removed
 
-    def sweep_unrecorded(self, session: Session, older_than_s: float) -> list[str]:
+    def sweep_unrecorded(self, session: Session, older_than_s: float, dry_run: bool = False) -> list[str]:
         """Delete blob files that no artifact row records and ``tmp/`` files, when last written
         more than ``older_than_s`` seconds ago (a younger one may belong to a transaction still
-        open); returns the deleted files' names. These are the leftovers of transactions that
-        failed after writing their blobs."""
+        open); returns the deleted files' names (with ``dry_run``: those it would delete, and
+        deletes nothing). These are the leftovers of transactions that failed after writing
+        their blobs."""
         cutoff = time.time() - older_than_s
         recorded = set(session.scalars(select(Artifact.sha256)))
         removed: list[str] = []
@@ -201,7 +208,8 @@ class ArtifactStore:
         for path in candidates:
             try:
                 if path.is_file() and path.stat().st_mtime < cutoff:
-                    path.unlink()
+                    if not dry_run:
+                        path.unlink()
                     removed.append(path.name)
             except FileNotFoundError:  # another process swept it first
                 continue

@@ -1,8 +1,9 @@
-"""``csa serve`` and ``csa keys``: the service's own commands, added to ``csa`` as plugins.
+"""``csa serve``, ``csa keys``, ``csa doctor``, ``csa backup`` and ``csa restore``: the
+service's own commands, added to ``csa`` as plugins.
 
 ``csa_core`` never imports the service. Its command line finds this groups through the
 ``csa.commands`` entry points that ``pyproject.toml`` declares (``register_serve``,
-``register_keys``), so the
+``register_keys``, ``register_doctor``, ``register_backup``, ``register_restore``), so the
 dependency runs one way: ``server`` -> ``csa_core``. Jobs run inside the served process or,
 with ``CSA_EXECUTOR=ray``, on a Ray cluster that the process dispatches to; there is no
 separate worker command (docs/architecture.md, "Executors").
@@ -118,4 +119,116 @@ def run_keys(args: argparse.Namespace) -> int:
         return 1
     finally:
         engine.dispose()
+    return 0
+
+
+def _data_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data-dir", type=Path, default=None, help="the service's data folder (default: $CSA_DATA_DIR or ./csa-data)")
+    p.add_argument("--database-url", default=None, help="the service's database (default: SQLite in the data folder)")
+
+
+def register_doctor(sub: argparse._SubParsersAction) -> None:
+    """``csa doctor``: leftovers of crashes between the database and the artifact store, and
+    their repair (docs/operations.md "csa doctor")."""
+    p = sub.add_parser("doctor", help="find (and repair) orphan blobs, missing blobs, half-written files and stuck jobs")
+    _data_args(p)
+    p.add_argument("--dry-run", action="store_true", help="only report what is wrong; change nothing")
+    p.add_argument(
+        "--min-age",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="leave unrecorded files and upload folders younger than this (default: 0 when no executor is alive, else CSA_ORPHAN_BLOB_GRACE_SECONDS)",
+    )
+    p.set_defaults(func=run_doctor)
+
+
+def run_doctor(args: argparse.Namespace) -> int:
+    """Exit 0 when nothing is left wrong, 1 when data is missing or corrupt (a repair cannot
+    bring it back) or, with --dry-run, when anything was found."""
+    try:
+        from sqlalchemy.engine import make_url
+
+        from server.artifacts import ArtifactStore
+        from server.db.migrate import upgrade_to_head
+        from server.db.session import make_engine, make_sessionmaker
+        from server.doctor import examine
+    except ImportError as e:
+        print(f"csa doctor: {SERVER_EXTRA_HINT}: {e}", file=sys.stderr)
+        return 2
+    if args.min_age is not None and args.min_age < 0:
+        print(f"csa doctor: --min-age must be >= 0, got {args.min_age:g}", file=sys.stderr)
+        return 2
+    settings = settings_from_args(args)
+    url = make_url(settings.resolved_database_url)
+    if url.get_backend_name() == "sqlite" and not Path(url.database or "").is_file():
+        print(f"csa doctor: {url.database}: no database file (wrong --data-dir or --database-url?)", file=sys.stderr)
+        return 2
+    engine = make_engine(settings.resolved_database_url)
+    try:
+        upgrade_to_head(engine)  # the schema the service's code expects, as csa serve would make it
+        report = examine(
+            make_sessionmaker(engine),
+            ArtifactStore(settings.resolved_artifact_dir),
+            settings.resolved_work_dir,
+            repair=not args.dry_run,
+            min_age_s=args.min_age,
+            grace_s=settings.orphan_blob_grace_seconds,
+            lease_seconds=settings.lease_seconds,
+            max_attempts=settings.max_attempts,
+            say=print,
+        )
+    finally:
+        engine.dispose()
+    if report.unrepairable:
+        print(f"csa doctor: {len(report.unrepairable)} stored file(s) missing or corrupt; restore a backup (docs/operations.md)", file=sys.stderr)
+        return 1
+    if args.dry_run and report.problems:
+        return 1
+    return 0
+
+
+def register_backup(sub: argparse._SubParsersAction) -> None:
+    """``csa backup DIR``: the database, then the blobs it records, with checksums
+    (docs/operations.md "Backup and restore")."""
+    p = sub.add_parser("backup", help="copy the service's database and artifact store into a new folder")
+    p.add_argument("folder", type=Path, metavar="DIR", help="a new or empty folder")
+    _data_args(p)
+    p.set_defaults(func=run_backup)
+
+
+def register_restore(sub: argparse._SubParsersAction) -> None:
+    """``csa restore DIR``: a backup in place of the service's data (the service stopped)."""
+    p = sub.add_parser("restore", help="put a backup made by csa backup in place of the service's data")
+    p.add_argument("folder", type=Path, metavar="DIR", help="a folder made by csa backup")
+    _data_args(p)
+    p.add_argument("--force", action="store_true", help="replace a target that already holds a database or artifact files")
+    p.set_defaults(func=run_restore)
+
+
+def run_backup(args: argparse.Namespace) -> int:
+    return _backup_or_restore(args, "backup")
+
+
+def run_restore(args: argparse.Namespace) -> int:
+    return _backup_or_restore(args, "restore")
+
+
+def _backup_or_restore(args: argparse.Namespace, action: str) -> int:
+    try:
+        from server.backup import BackupError, backup, restore
+    except ImportError as e:
+        print(f"csa {action}: {SERVER_EXTRA_HINT}: {e}", file=sys.stderr)
+        return 2
+    settings = settings_from_args(args)
+    try:
+        if action == "backup":
+            done = backup(settings, args.folder)
+        else:
+            done = restore(settings, args.folder, force=args.force)
+    except BackupError as e:
+        print(f"csa {action}: {e}", file=sys.stderr)
+        return 1
+    verb = "backed up" if action == "backup" else "restored"
+    print(f"{verb} the {done.database} database and {done.artifacts} artifact file(s), {done.artifact_bytes} bytes ({done.folder})")
     return 0

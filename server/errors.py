@@ -3,12 +3,15 @@
 ``field`` names the request field at fault (``"depth"``, ``"params.scene_id"``) or is null.
 An unexpected exception is answered 500 on the same keep-alive connection (see
 :class:`UnhandledErrorMiddleware`); a value the database refuses (a number out of its range,
-a NUL character in text) is the client's input and is answered 422.
+a NUL character in text) is the client's input and is answered 422. A write that finds the
+disk full is answered 507 (:func:`storage_full`; docs/operations.md "Full disk").
 """
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -54,6 +57,14 @@ def too_large(field: str, limit: int) -> APIError:
 
 def not_available(message: str) -> APIError:
     return APIError(501, "not_available", message)
+
+
+STORAGE_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+
+
+def storage_full(exc: BaseException) -> bool:
+    """Whether ``exc`` is a write refused for want of space (a full disk or a quota)."""
+    return isinstance(exc, OSError) and exc.errno in STORAGE_FULL_ERRNOS
 
 
 def _printable(text: str) -> str:
@@ -140,6 +151,18 @@ def install_error_handlers(app: FastAPI) -> None:
         reason = str(getattr(exc, "orig", exc)).strip().splitlines()[0][:300]
         log.warning("database refused a request's value: %s", reason)
         return JSONResponse(error_body("invalid", f"a value of this request is not accepted by the database ({reason})"), status_code=422)
+
+    @app.exception_handler(OSError)
+    async def _os_error(_: Request, exc: OSError) -> JSONResponse:
+        if not storage_full(exc):
+            log.exception("unhandled error", exc_info=exc)
+            return _internal_error(exc)
+        # The reason only, never the file name (a path of the server). Writes go to temporary
+        # names first and rows commit after their files, so nothing half-written is visible.
+        reason = exc.strerror or os.strerror(exc.errno or errno.ENOSPC)
+        log.error("a write failed for want of space: %s", reason)
+        message = f"the service's data folder is full ({reason}): nothing of this request was stored; free space and retry"
+        return JSONResponse(error_body("insufficient_storage", message), status_code=507)
 
     @app.exception_handler(Exception)
     async def _unexpected(_: Request, exc: Exception) -> JSONResponse:

@@ -17,6 +17,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from csa_core.data.camera import Intrinsics
+from server import faults
 from server.artifacts import ArtifactStore
 from server.db.models import Frame, Scene
 from server.errors import conflict
@@ -77,6 +78,7 @@ def store_frame(session: Session, store: ArtifactStore, scene: Scene, name: str,
     color = store.put_bytes(session, frame.color, "color", "image/jpeg" if frame.color_ext == ".jpg" else "image/png")
     depth = store.put_bytes(session, frame.depth, "depth", "image/png")
     labels = store.put_bytes(session, frame.labels, "labels", "image/png") if frame.labels is not None else None
+    faults.point("frame.blobs_written")
     if scene.intrinsics is None and frame.intrinsics is not None:
         scene.intrinsics = frame.intrinsics.to_dict()
     if scene.depth_width is None:

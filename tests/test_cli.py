@@ -36,9 +36,10 @@ def test_building_the_parser_imports_neither_torch_nor_opencv_nor_the_web_stack(
 
 def test_serve_comes_from_the_services_entry_point():
     declared = {ep.name: ep.value for ep in entry_points(group=PLUGIN_GROUP)}
-    assert declared == {"keys": "server.cli:register_keys", "serve": "server.cli:register_serve"}
+    service = ("backup", "doctor", "keys", "restore", "serve")
+    assert declared == {name: f"server.cli:register_{name}" for name in service}
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
-    assert list(sub.choices) == [*GROUPS, "keys", "serve"]
+    assert list(sub.choices) == [*GROUPS, *service]
     args = build_parser().parse_args(["serve", "--port", "8123", "--no-worker", "--data-dir", "d"])
     assert (args.port, args.no_worker, args.host, args.data_dir, args.func.__module__) == (8123, True, "127.0.0.1", Path("d"), "server.cli")
 

@@ -19,8 +19,10 @@ import time
 import traceback
 import uuid
 from collections.abc import Callable
+from pathlib import Path
 
 from sqlalchemy import update
+from sqlalchemy.orm import Session
 
 from csa_core.errors import CSAInputError
 from server.db.models import Job, utcnow
@@ -57,6 +59,30 @@ def run_job_function(ctx: JobContext, run: Callable[[JobContext], None]) -> tupl
         return queue.FAILED, f"{type(e).__name__}: {e}"
     finally:
         logging.getLogger().removeHandler(handler)
+
+
+UPLOAD_SCRATCH_AGE_S = 86400.0  # an upload's folder (csa-*) older than this is a killed request's
+
+
+def stale_scratch(s: Session, work: Path, upload_age_s: float) -> list[Path]:
+    """Scratch folders of the work folder that a killed process left: those of jobs no longer
+    running (``job-<id>-*``), and upload folders (``csa-*``) last changed more than
+    ``upload_age_s`` seconds ago (a younger one may be a request still running)."""
+    if not work.is_dir():
+        return []
+    cutoff = time.time() - upload_age_s
+    found: list[Path] = []
+    for p in sorted(work.iterdir()):
+        parts = p.name.split("-")
+        if not p.is_dir():
+            continue
+        if len(parts) == 3 and parts[0] == "job" and parts[1].isdigit():
+            job = s.get(Job, int(parts[1]))
+            if job is None or job.status != queue.RUNNING:
+                found.append(p)
+        elif parts[0] == "csa" and p.stat().st_mtime < cutoff:
+            found.append(p)
+    return found
 
 
 class Executor:
@@ -168,23 +194,10 @@ class Executor:
             log.warning("recovered job %s from a lost owner", job_id)
 
     def _remove_stale_scratch(self) -> None:
-        """Delete scratch folders left by a killed process: those of jobs no longer running,
-        and upload folders (``csa-*``) older than a day."""
-        work = self.settings.resolved_work_dir
-        if not work.is_dir():
-            return
-        day_ago = time.time() - 86400
+        """Delete scratch folders left by a killed process (:func:`stale_scratch`)."""
         with session_scope(self.services.sessions) as s:
-            for p in work.iterdir():
-                parts = p.name.split("-")
-                if not p.is_dir():
-                    continue
-                if len(parts) == 3 and parts[0] == "job" and parts[1].isdigit():
-                    job = s.get(Job, int(parts[1]))
-                    if job is None or job.status != queue.RUNNING:
-                        shutil.rmtree(p, ignore_errors=True)
-                elif parts[0] == "csa" and p.stat().st_mtime < day_ago:
-                    shutil.rmtree(p, ignore_errors=True)
+            for p in stale_scratch(s, self.settings.resolved_work_dir, UPLOAD_SCRATCH_AGE_S):
+                shutil.rmtree(p, ignore_errors=True)
 
     def scratch_folder(self, job_id: int) -> str:
         """A new folder name under the work dir for a job (``job-<id>-<random>``)."""

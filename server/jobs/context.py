@@ -28,6 +28,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
+from server import faults
 from server.db.models import Job
 from server.db.session import session_scope
 from server.jobs import queue
@@ -136,6 +137,7 @@ class JobContext:
         """Register the job's outputs and mark it succeeded, in one transaction."""
         self.check()
         self.flush_logs()
+        faults.point("job.computed")
         self.completed_result = self._register(register)
         return self.completed_result
 

@@ -27,6 +27,7 @@ from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
+from server import faults
 from server.db.models import Job, JobLog, LineageLock, Worker, utcnow
 from server.db.session import session_scope
 
@@ -189,6 +190,7 @@ def finish(
             raise LostJob(f"job {job_id} is no longer running under {owner}")
         if register is not None:
             result = register(s)
+            faults.point("job.registering")
         now = utcnow()
         res = s.execute(
             update(Job)
@@ -319,19 +321,29 @@ def _owner_gone(w: Worker | None, owner: str | None) -> str | None:
     return None
 
 
-def recover_stale_jobs(factory: sessionmaker[Session], max_attempts: int) -> list[int]:
-    """Re-queue (or fail, after ``max_attempts``) running jobs whose owner died: its lease
-    expired, or it was a process on this host that no longer exists. Returns their ids."""
+def stale_jobs(s: Session) -> list[tuple[Job, str]]:
+    """Running jobs whose owner died, with the reason: its lease expired, or it was a process
+    on this host that no longer exists (what :func:`recover_stale_jobs` ends; ``csa doctor``
+    lists them)."""
     now = utcnow()
+    found: list[tuple[Job, str]] = []
+    for job in s.scalars(select(Job).where(Job.status == RUNNING).order_by(Job.id)).all():
+        owner = s.get(Worker, job.worker_id) if job.worker_id else None
+        reason = _owner_gone(owner, job.worker_id)
+        if reason is None and job.lease_expires_at is not None and job.lease_expires_at < now:
+            reason = f"lease expired at {job.lease_expires_at.isoformat(timespec='seconds')}Z ({job.worker_id} stopped renewing it)"
+        if reason is not None:
+            found.append((job, reason))
+    return found
+
+
+def recover_stale_jobs(factory: sessionmaker[Session], max_attempts: int) -> list[int]:
+    """Re-queue (or fail, after ``max_attempts``) running jobs whose owner died
+    (:func:`stale_jobs`). Returns their ids."""
     recovered: list[int] = []
     with session_scope(factory) as s:
-        running = s.scalars(select(Job).where(Job.status == RUNNING)).all()
-        for job in running:
-            owner = s.get(Worker, job.worker_id) if job.worker_id else None
-            reason = _owner_gone(owner, job.worker_id)
-            if reason is None and job.lease_expires_at is not None and job.lease_expires_at < now:
-                reason = f"lease expired at {job.lease_expires_at.isoformat(timespec='seconds')}Z ({job.worker_id} stopped renewing it)"
-            if reason is not None and _end_lost_attempt(s, job, reason, max_attempts):
+        for job, reason in stale_jobs(s):
+            if _end_lost_attempt(s, job, reason, max_attempts):
                 recovered.append(job.id)
         # Locks are released with every state change; this only guards against manual edits.
         running_ids = select(Job.id).where(Job.status == RUNNING)

@@ -17,6 +17,7 @@ from starlette.concurrency import run_in_threadpool
 
 from csa_core.data.image_files import COLOR_EXTS
 from csa_core.data.scene_io import frame_names
+from server import faults
 from server.archives import ArchiveLimits, UnsafeArchive, extract_archive
 from server.auth import DeviceScope, SceneAccess
 from server.db.models import Frame, Scene
@@ -32,6 +33,7 @@ from server.frame_validation import (
 )
 from server.lookups import get_scene
 from server.pagination import PAGE_RESPONSES, PageDep, page
+from server.quotas import account_of_scene, check_stored_bytes
 from server.schemas.common import ERROR_RESPONSES
 from server.schemas.frames import ArchiveUploadOut, FrameOut, FrameUploadOut, SkippedFrameOut
 
@@ -81,6 +83,22 @@ def _frame_name(db, scene: Scene, valid) -> str:
     (uploads are idempotent), else the next number."""
     same = db.scalar(select(Frame).where(Frame.scene_id == scene.id, Frame.content_sha256 == digest_of(valid)).limit(1))
     return same.name if same is not None else next_frame_name(db, scene.id)
+
+
+def _frame_bytes(valid) -> int:
+    """The bytes a frame's files take in the store (the stored-bytes quota, server/quotas.py)."""
+    labels = len(valid.labels) if valid.labels is not None else 0
+    return len(valid.color) + len(valid.depth) + labels
+
+
+def _new_bytes(db, scene: Scene, name: str | None, valid) -> int:
+    """What storing a frame adds: nothing when the scene holds its content under its name (or
+    under any name, for a frame without one), as an identical re-upload."""
+    same = (Frame.scene_id == scene.id, Frame.content_sha256 == digest_of(valid))
+    query = select(Frame.id).where(*same)
+    if name is not None:
+        query = query.where(Frame.name == name)
+    return 0 if db.scalar(query.limit(1)) is not None else _frame_bytes(valid)
 
 
 def _store_with_retry(db, services, scene: Scene, name: str | None, valid, replace: bool):
@@ -142,6 +160,10 @@ async def upload_frame(
 
     def validate_and_store() -> FrameUploadOut:
         valid = validate_frame(parts, scene_camera(scene), services.settings.max_image_pixels)
+        check_stored_bytes(
+            db, services.settings, account_of_scene(db, scene), _frame_bytes(valid), "color",
+            new_bytes=lambda: _new_bytes(db, scene, name, valid),
+        )  # before anything is stored
         outcome = _store_with_retry(db, services, scene, name, valid, replace)
         return FrameUploadOut(**FrameOut.model_validate(outcome.frame).model_dump(), created=outcome.created, replaced=outcome.replaced)
 
@@ -270,6 +292,22 @@ async def upload_archive(
     return await run_in_threadpool(_store_archive, db, services, scene, scene_ref, tmp, replace)
 
 
+def _archive_new_bytes(db, scene: Scene, valid_frames, sizes: list[int]) -> int:
+    """What storing an archive's checked frames adds: the frames whose content the scene does
+    not hold under their names yet (read again only when the upload is over the quota)."""
+    total = 0
+    for (name, checked, (color, depth, labels)), size in zip(valid_frames, sizes, strict=True):
+        frame = dataclasses.replace(
+            checked,
+            color=color.read_bytes(),
+            depth=depth.read_bytes(),
+            labels=labels.read_bytes() if labels is not None else None,
+        )
+        if _new_bytes(db, scene, name, frame):
+            total += size
+    return total
+
+
 def _store_archive(db, services, scene: Scene, scene_ref: str, tmp: Path, replace: bool) -> ArchiveUploadOut:
     """Extract the archive at ``tmp/upload``, validate its frames and store them all or none;
     removes ``tmp``."""
@@ -281,6 +319,7 @@ def _store_archive(db, services, scene: Scene, scene_ref: str, tmp: Path, replac
             root = _archive_frames(extract_archive(packed, tmp / "x", limits))
         except UnsafeArchive as e:
             raise invalid("archive", str(e)) from None
+        faults.point("archive.extracted")
         packed.unlink()
         color_dir = root / "color"
         colors = _color_images(color_dir)
@@ -333,6 +372,11 @@ def _store_archive(db, services, scene: Scene, scene_ref: str, tmp: Path, replac
             valid_frames.append((name, dataclasses.replace(valid, color=b"", depth=b"", labels=None), images))
         if not valid_frames:
             raise invalid("archive", "no frame with a finite pose")
+        sizes = [sum(p.stat().st_size for p in files if p is not None) for *_, files in valid_frames]
+        check_stored_bytes(
+            db, st, account_of_scene(db, scene), sum(sizes), "archive",
+            new_bytes=lambda: _archive_new_bytes(db, scene, valid_frames, sizes),
+        )  # before anything is stored
         added, unchanged, replaced = [], [], []
         try:
             for name, checked, (color_path, depth_path, labels_path) in valid_frames:
@@ -344,6 +388,7 @@ def _store_archive(db, services, scene: Scene, scene_ref: str, tmp: Path, replac
                 )
                 outcome = store_frame(db, services.store, scene, name, valid, replace=replace)
                 (added if outcome.created else replaced if outcome.replaced else unchanged).append(name)
+                faults.point("archive.frame_stored")
             db.commit()
         except (IntegrityError, StaleDataError):  # a concurrent upload, or the scene deleted meanwhile
             db.rollback()

@@ -27,8 +27,9 @@ REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.skipif(not capabilities.available("seg"), reason="needs csa_core.seg for a real job to interrupt")
 
 
-def start_api(data_dir: Path, port: int, log: Path) -> subprocess.Popen:
-    """``csa serve`` in its own process, with the embedded executor."""
+def start_api(data_dir: Path, port: int, log: Path, database_url: str | None = None, extra_env: dict[str, str] | None = None) -> subprocess.Popen:
+    """``csa serve`` in its own process, with the embedded executor (on ``database_url``, and
+    ``extra_env`` such as ``CSA_FAULT_POINT`` when given)."""
     env = {
         **{k: v for k, v in os.environ.items() if not k.startswith("CSA_")},  # no stray settings
         "CSA_API_KEYS": API_KEY,
@@ -38,8 +39,11 @@ def start_api(data_dir: Path, port: int, log: Path) -> subprocess.Popen:
         "CSA_TORCH_THREADS": "1",
         "CSA_DEVICE": "cpu",
         "PYTHONPATH": str(REPO),
+        **(extra_env or {}),
     }
     args = [sys.executable, "-m", "csa_core.cli.main", "serve", "--data-dir", str(data_dir), "--port", str(port), "--log-level", "warning"]
+    if database_url is not None:
+        args += ["--database-url", database_url]
     with open(log, "ab") as out:
         return subprocess.Popen(args, cwd=log.parent, env=env, stdout=out, stderr=subprocess.STDOUT)
 
