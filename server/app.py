@@ -22,6 +22,7 @@ from server.errors import install_error_handlers
 from server.executors import make_executor
 from server.model_cache import ModelCache
 from server.nerf_cache import NerfCache
+from server.quotas import QUOTA_RESPONSES, RequestRate, RequestRateQuota
 from server.request_metrics import RequestMetricsMiddleware, RequestStats, RouteTemplates
 from server.routers import (
     admin,
@@ -102,9 +103,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(RequestMetricsMiddleware, stats=stats, templates=templates)
 
     app.include_router(health.router)
-    secured = [Depends(require_api_key)]
-    app.include_router(prometheus.router, dependencies=secured)
+    app.state.request_rate = RequestRate.from_settings(settings)  # per key (server/quotas.py)
+    secured = [Depends(require_api_key), RequestRateQuota]
+    app.include_router(prometheus.router, dependencies=secured, responses=QUOTA_RESPONSES)
     for module in (scenes, frames, jobs, models, memory, continual, inference, rendering, admin):
-        app.include_router(module.router, prefix=API_PREFIX, dependencies=secured)
+        app.include_router(
+            module.router, prefix=API_PREFIX, dependencies=secured, responses=QUOTA_RESPONSES
+        )
     app.include_router(ui.router)  # the dashboard at /ui: its own session auth (server/ui)
     return app

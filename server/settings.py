@@ -10,6 +10,7 @@ from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 MiB = 1024 * 1024
+GiB = 1024 * MiB
 
 
 class Settings(BaseSettings):
@@ -40,6 +41,14 @@ class Settings(BaseSettings):
     max_inference_upload_bytes: int = 32 * MiB
     orphan_blob_grace_seconds: float = 3600.0  # unrecorded blob files older than this are deleted by the background sweep
     orphan_sweep_interval_seconds: float = 3600.0  # background sweep: at start, then this often (0: at start only)
+
+    # Quotas per key (docs/operations.md "Quotas"; server/quotas.py); 0 turns one off. Admin
+    # keys, the settings' keys among them, have none.
+    quota_requests_per_second: float = Field(20.0, ge=0)  # per key and API process, sustained
+    quota_request_burst: int = Field(200, ge=1)  # requests a key may send at once after a pause
+    quota_stored_bytes_device: int = Field(50 * GiB, ge=0)  # its scenes' frames
+    quota_stored_bytes_operator: int = Field(500 * GiB, ge=0)  # its scenes' frames, checkpoints
+    quota_queued_jobs_operator: int = Field(100, ge=0)  # queued jobs when an operator key queues
 
     # Jobs: where they run (docs/architecture.md, "Executors").
     executor: Literal["embedded", "ray"] = "embedded"  # embedded: in this process; ray: on a Ray cluster

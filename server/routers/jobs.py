@@ -19,6 +19,7 @@ from server.errors import APIError, not_available
 from server.jobs import queue
 from server.jobs.kinds import KINDS
 from server.lookups import get_job
+from server.quotas import QueuedJobsQuota
 from server.schemas.common import ERROR_RESPONSES
 from server.schemas.jobs import JobCreate, JobKindOut, JobLogLine, JobLogOut, JobOut, JobStatus
 
@@ -42,6 +43,7 @@ def list_kinds() -> list[JobKindOut]:
     "",
     response_model=JobOut,
     status_code=status.HTTP_202_ACCEPTED,
+    dependencies=[QueuedJobsQuota],
     responses={409: ERROR_RESPONSES[422], 501: {"model": ERROR_RESPONSES[422]["model"], "description": "the job kind is not available in this build"}},
 )
 def create_job(body: Annotated[JobCreate, Body(discriminator="kind")], db: DbDep) -> JobOut:

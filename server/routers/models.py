@@ -19,12 +19,13 @@ from starlette.concurrency import run_in_threadpool
 from csa_core.data.camera import parse_size
 from csa_core.errors import CSAInputError
 from server import capabilities
-from server.auth import OperatorScope
+from server.auth import OperatorScope, PrincipalDep
 from server.db.models import Evaluation, ModelVersion, Scene
 from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import conflict, invalid, not_available, too_large
 from server.lookups import get_model
 from server.pagination import PAGE_RESPONSES, PageDep, page
+from server.quotas import UPLOADER_META, account_of_principal, check_stored_bytes
 from server.registry import checkpoint_sha, register_checkpoint, root_conflict, set_current
 from server.schemas.common import ERROR_RESPONSES, Name
 from server.schemas.models import ModelOut
@@ -135,6 +136,7 @@ def _checked_card(path: Path, max_pixels: int):
 async def register_model(
     db: DbDep,
     services: ServicesDep,
+    principal: PrincipalDep,
     checkpoint: Annotated[UploadFile, File(description="CSA segmentation checkpoint (.safetensors)")],
     name: Annotated[Name, Form()],
     lineage: Annotated[Name | None, Form(description="default: the model name")] = None,
@@ -164,9 +166,14 @@ async def register_model(
 
     def check_and_register() -> ModelOut:
         try:
+            account = account_of_principal(principal)
+            check_stored_bytes(db, services.settings, account, size, "checkpoint")  # before storing
             card = _checked_card(path, services.settings.max_image_pixels)
+            meta = {"task": "upload", "card_created": card.created}
+            if principal.key_id is not None:
+                meta[UPLOADER_META] = principal.key_id  # counted in the key's stored bytes
             model = register_checkpoint(
-                db, services.store, path, name=name, lineage=lineage, arch=card.arch, metrics=dict(card.metrics or {}), meta={"task": "upload", "card_created": card.created}, make_current=make_current
+                db, services.store, path, name=name, lineage=lineage, arch=card.arch, metrics=dict(card.metrics or {}), meta=meta, make_current=make_current
             )
             try:
                 db.commit()

@@ -1,0 +1,67 @@
+"""``benchmarks/soak.py --smoke``: a real ``csa serve`` on loopback (SQLite) under about 20 s of
+mixed traffic from 8 clients answers every request, none with a 5xx, and the report holds the
+latency percentiles of every route the clients use and the server's RSS over time."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from server import capabilities
+
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "soak.py"
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(not capabilities.available("nerf"), reason="needs csa_core.nerf for the fit"),
+]
+
+ROUTES = {
+    "POST /scenes",
+    "POST /scenes/{scene}/frames",
+    "POST /predict",
+    "POST /scenes/{scene}/render",
+    "POST /jobs",
+    "GET /scenes",
+    "GET /scenes/{scene}",
+    "GET /scenes/{scene}/frames",
+    "GET /jobs",
+    "GET /models",
+    "GET /memory",
+}
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("soak", BENCH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up while it loads
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_soak_smoke_mode_answers_every_request_without_a_server_error(tmp_path, capsys) -> None:
+    bench = _bench()
+    out = tmp_path / "soak.json"
+    results = bench.main(["--smoke", "--sqlite", "--json", str(out)])
+    printed = capsys.readouterr().out
+    assert bench.exit_code(results) == 0, printed
+    assert results["server_errors"] == 0 and results["unanswered"] == 0 and results["server_alive"]
+    assert json.loads(out.read_text())["requests"] == results["requests"]
+    rows = {r["route"]: r for r in results["routes"]}
+    assert set(rows) == ROUTES, printed  # every kind of traffic ran (POST /jobs once per operator)
+    for route, row in rows.items():
+        assert row["requests"] == sum(row["statuses"].values()), route
+        assert 0 < row["p50_ms"] <= row["p95_ms"] <= row["p99_ms"], route
+        assert route in printed
+    # The work the clients asked for was done, not refused: uploads stored, views rendered.
+    assert rows["POST /scenes/{scene}/frames"]["statuses"].get("201", 0) > 0
+    assert rows["POST /scenes/{scene}/render"]["statuses"].get("200", 0) > 0
+    assert rows["POST /predict"]["statuses"].get("200", 0) > 0
+    assert rows["POST /jobs"]["statuses"].get("202", 0) > 0
+    rss = results["rss_mib"]
+    assert len(rss) >= 5 and all(mib > 50 for _, mib in rss)  # a Python with torch, sampled
+    assert "server RSS (MiB) over time" in printed and "p99 ms" in printed
