@@ -1,9 +1,11 @@
 """Procedural synthetic rooms: the project's embedded default data.
 
-Rooms are boxes (walls, floor, ceiling, furniture built from several boxes) with
-procedural textures and Lambertian lighting, seen by a camera walking through them; every
-frame has colour, z-depth, a camera-to-world pose and exact NYU40 labels. Families of rooms
-differ in layout, appearance and light, to create domain shift between scenes.
+Rooms are a box (walls, floor, ceiling) holding furniture built from oriented boxes and
+round rods (capsules), thin, tilted and curved parts included, with procedural textures and
+Lambertian lighting, seen by a camera walking through them or from viewpoints spread at
+random (the capture mode); every frame has colour, z-depth, a camera-to-world pose and exact
+NYU40 labels. Families of rooms differ in layout, appearance and light, to create domain
+shift between scenes.
 """
 
 from csa_core.data.synth.families import (

@@ -1,6 +1,7 @@
-"""A hand-held style camera walk through free space, looking at furniture.
+"""Capture modes: a hand-held style camera walk through free space, looking at furniture
+("walk"), or viewpoints spread at random through the room ("random", :func:`random_views`).
 
-The camera moves along a smooth route (Catmull-Rom through random waypoints) that keeps
+In the walk, the camera moves along a smooth route (Catmull-Rom through random waypoints) that keeps
 a clearance from walls and from every floor-standing part, at a fixed height with a
 little bob, a few centimetres per frame. Its gaze moves smoothly from one piece of
 furniture to the next, preferring classes it has not looked at yet, with the yaw rate

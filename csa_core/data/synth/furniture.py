@@ -1,11 +1,15 @@
-"""Furniture made of boxes, each builder returning a group in its own frame.
+"""Furniture made of boxes and round rods, each builder returning a group in its own frame.
+
+Pieces have real proportions: legs, posts and spindles 1-3 cm across, boards 1.5-2.5 cm
+thick, gaps between slats, backs that lean, bars that bend (chains of rods, :func:`arc`).
 
 Group frame: metres, z up, floor at z = 0, the footprint centred on the origin, the front
 facing -y and the back (the side that goes against a wall) at +y. Every part carries its
 NYU40 class name and a material role ("body", "top", "frame", "soft", "screen", "glass",
-"shade", "canvas"); the family decides what each (class, role) looks like. Builders keep
-parts of different objects apart by construction, so groups never interpenetrate
-internally; the layout keeps groups apart from each other.
+"shade", "canvas", "stem", "leaf"); the family decides what each (class, role) looks like.
+Builders keep parts of different objects apart by construction (parts of one object may
+join, as a spindle set into a seat), so objects never interpenetrate; the layout keeps
+groups apart.
 """
 
 from __future__ import annotations

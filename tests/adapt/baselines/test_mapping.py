@@ -52,11 +52,13 @@ def test_ground_truth_fusion_reproduces_ground_truth(office: Scene) -> None:
     # Read through each frame's own depth: measured 0.990 at 5 cm; the misses are pixels in
     # voxels shared by two surfaces.
     assert agreement(render_map_labels(voxel_map, office, list(gt), read="depth"), office) > 0.985
-    # Ray casting to the TSDF's zero crossing: measured 0.984 (stopping at the first voxel
-    # with scores instead grew nearer objects by up to a voxel: 0.949). The rest are pixels
-    # next to silhouettes, which a 5 cm TSDF places within about half a voxel.
+    # Ray casting to the TSDF's zero crossing: measured 0.984 on rooms of boxes, 0.963 since
+    # the rooms have thin parts (stopping at the first voxel with scores instead grew nearer
+    # objects by up to a voxel: 0.949). The rest are pixels next to silhouettes, which a 5 cm
+    # TSDF places within about half a voxel, and parts thinner than a voxel (2 cm chair legs
+    # and spindles: a fifth of the chair pixels are missed).
     pseudo = mapping_pseudo_labels(office, gt)
-    assert agreement(pseudo, office) > 0.975
+    assert agreement(pseudo, office) > 0.955
     # Nearly every ray meets the room (measured: all but 0.07% of the pixels, at silhouettes).
     assert np.mean([(pseudo[f.name] > 0).mean() for f in office.frames]) > 0.998
 
@@ -369,8 +371,9 @@ def test_mapping_step_end_to_end(office: Scene) -> None:
         predictions=gt,
     )
     assert set(step.pseudo_labels) == {f.name for f in office.train_frames}
-    # Ray cast from the training views (measured 0.984 on this room)
-    assert agreement(step.pseudo_labels, office) > 0.975
+    # Ray cast from the training views (measured 0.984 on this room of boxes, 0.965 since it
+    # has thin parts that a 5 cm TSDF loses: see the test of ground-truth fusion above)
+    assert agreement(step.pseudo_labels, office) > 0.955
     assert len(step.memory) == office.num_train and step.map_bytes > 0
     # 13 current + 4 replayed pairs in batches of 4, the incomplete last batch dropped.
     assert step.train_result is not None and step.train_result.images_seen == 16
