@@ -280,7 +280,8 @@ def test_queued_jobs_quota_per_scope(quotaed: Quotaed) -> None:
     quotaed.make_key("jobs-device", "device")
     with quotaed.http(API_KEY) as admin:
         assert admin.post("/api/v1/scenes", json={"name": "jobs-scene"}).status_code == 201
-        assert admin.post("/api/v1/scenes/jobs-scene/frames", files=frame_files(7)).status_code == 201
+        r = admin.post("/api/v1/scenes/jobs-scene/frames", files=frame_files(7))
+        assert r.status_code == 201, r.text
         queued = len(admin.get("/api/v1/jobs", params={"status": "queued"}).json())
     assert queued == 0
     body = {"kind": "fit_nerf", "params": {"scene": "jobs-scene", "labels": "ground_truth"}}

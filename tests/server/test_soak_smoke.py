@@ -17,7 +17,7 @@ BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "soak.py"
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(not capabilities.available("nerf"), reason="needs csa_core.nerf for the fit"),
+    pytest.mark.skipif(not capabilities.available("nerf"), reason="the setup fits a NeRF"),
 ]
 
 ROUTES = {
