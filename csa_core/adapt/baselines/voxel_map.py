@@ -24,7 +24,17 @@ missed still gets the label the map knows.
 
 Everything is vectorised over pixels: voxels are integer cells packed into one int64 key,
 kept sorted; a ray march skips empty space by an exact voxel traversal to the first cell next
-to one with a non-positive distance, on a dense grid over the map's bounding box.
+to one with a non-positive distance (a stopping cell), on a dense grid over the map's bounding
+box.
+
+There are two implementations of this one algorithm. ``backend="torch"`` (the default) makes
+every step a tensor operation over a view's pixels, voxels or rays, on the map's ``device`` (the
+CPU unless told otherwise, with the threads torch uses, or a GPU). ``backend="numpy"`` (one CPU
+core) is the reference it is tested against (tests/adapt/baselines/test_voxel_map_backends.py).
+Both build the same map. The torch ray cast samples the same windows, with float32 positions
+(the reference's are float64), and reaches the first stopping cell by skipping as far as a
+distance field allows (how many cells away the nearest stopping cell is) instead of walking
+coarse cells.
 """
 
 from __future__ import annotations
@@ -837,6 +847,7 @@ def _walk(cell0: np.ndarray, step: np.ndarray, axis: np.ndarray) -> np.ndarray:
 
 _T_PIECES = 8  # cells the exact traversal looks at per ray and march iteration
 _T_SKIP = 32  # the most voxels the march skips at once
+_T_SKIP_STEPS = 3  # skips per ray and march iteration
 _T_RAY_CHUNK = 1 << 18  # rays marched together
 _T_CORNERS = torch.tensor(list(np.ndindex(2, 2, 2)), dtype=torch.int64)  # (8, 3)
 
@@ -1275,10 +1286,11 @@ class _TorchSurface:
         while state.shape[0]:
             start, end, d = state[:, 0], state[:, 1], state[:, 2:5]
             if self.field is not None:
-                # Skip ``skip`` voxels where the nearest stopping cell is farther.
-                skip = self._field_at(o + start[:, None] * d)
-                start = torch.where(skip > 0, start + skip * self.voxel_size, start)
-                close = (skip <= 0).nonzero().squeeze(1)
+                # Skip ``skip`` voxels where the nearest stopping cell is farther, a few times.
+                for _ in range(_T_SKIP_STEPS):
+                    skip = self._field_at(o + start[:, None] * d)
+                    start = torch.where(skip > 0, start + skip * self.voxel_size, start)
+                close = ((skip <= 0) & (start < end)).nonzero().squeeze(1)
             else:
                 close = torch.arange(state.shape[0], device=dev)
             found_rows = close[:0]
@@ -1346,10 +1358,10 @@ def _raycast_torch(
     rays = torch.isfinite(t).nonzero().squeeze(1)
     hit_t = t[rays].double()
     scores = _t_scores_near(voxel_map, surface, origin + hit_t[:, None] * unit[rays])
-    found = scores.amax(dim=1) > 0
+    best, arg = scores.max(dim=1)  # the first of equal maxima, as numpy's argmax
     labels = torch.zeros(h * w, dtype=torch.uint8, device=dirs.device)
     depth = torch.zeros(h * w, dtype=torch.float32, device=dirs.device)
-    labels[rays] = torch.where(found, scores.argmax(dim=1) + 1, UNKNOWN).to(torch.uint8)
+    labels[rays] = torch.where(best > 0, arg + 1, UNKNOWN).to(torch.uint8)
     depth[rays] = (hit_t / norm[rays]).float()
     return _as_numpy(labels.view(h, w)), _as_numpy(depth.view(h, w))
 
@@ -1363,7 +1375,8 @@ def _labels_at_depth_torch(
     origin, dirs, mask = _t_frame_rays(voxel_map, valid, pose, intrinsics)
     keys = _t_surface_keys(voxel_map, depth, valid, dirs, origin)[0]
     scores = _t_scores_at(voxel_map, keys)
-    labels = torch.where(scores.amax(dim=1) > 0, scores.argmax(dim=1) + 1, UNKNOWN)
+    best, arg = scores.max(dim=1)
+    labels = torch.where(best > 0, arg + 1, UNKNOWN)
     out = torch.zeros(mask.numel(), dtype=torch.uint8, device=mask.device)
     out[mask] = labels.to(torch.uint8)
     return _as_numpy(out.view(valid.shape))
@@ -1372,9 +1385,8 @@ def _labels_at_depth_torch(
 def _t_scores_near(voxel_map: VoxelSemanticMap, surface: _TorchSurface, points: Tensor) -> Tensor:
     """:meth:`VoxelSemanticMap._scores_near` on the map's device."""
     n, c = points.shape[0], voxel_map.config.num_classes
-    scores = torch.zeros((n, c), device=points.device)
     if surface.rows is None or n == 0:
-        return scores
+        return torch.zeros((n, c), device=points.device)
     base, weights = _t_trilinear(points, voxel_map.voxel_size)
     rows = surface.rows.cube(base).view(-1)
     voted = (rows >= 0).nonzero().squeeze(1)  # (point, corner) pairs with scores
@@ -1404,10 +1416,16 @@ def _t_scores_at(voxel_map: VoxelSemanticMap, keys: Tensor) -> Tensor:
     missing = (~hit).nonzero().squeeze(1)
     if r == 0 or missing.numel() == 0 or voxel_map.num_voxels == 0:
         return scores
-    cells = _t_unpack(keys[missing])
-    gathered = torch.zeros((missing.numel(), c), device=keys.device)
-    for offset in torch.from_numpy(_cube_offsets(r)).to(keys.device):
-        rows = _t_rows_of(voxel_map._keys, _t_pack(cells + offset))
-        gathered += torch.where((rows >= 0)[:, None], voxel_map._scores[rows.clamp(min=0)], 0.0)
-    scores[missing] = gathered
+    offsets = torch.from_numpy(_cube_offsets(r)).to(keys.device)
+    cells = _t_unpack(keys[missing])[:, None, :] + offsets
+    rows = _t_rows_of(voxel_map._keys, _t_pack(cells.view(-1, 3)))
+    found = (rows >= 0).nonzero().squeeze(1)  # (missing voxel, neighbour) pairs with scores
+    # The sums as a product with a sparse 0/1 (missing voxels, voxels) matrix.
+    neighbours = torch.sparse_coo_tensor(
+        torch.stack([torch.div(found, offsets.shape[0], rounding_mode="floor"), rows[found]]),
+        torch.ones(found.numel(), device=keys.device),
+        (missing.numel(), voxel_map.num_voxels),
+        check_invariants=False,
+    )
+    scores[missing] = torch.sparse.mm(neighbours, voxel_map._scores)
     return scores
