@@ -55,6 +55,7 @@ BACKENDS = ("torch", "numpy")  # the implementation, and the reference it is tes
 PAPER_VOXEL_SIZE = 0.05
 
 _BITS = 21  # per axis: +-2^20 cells, +-52 km at 5 cm
+_TOO_FAR = "voxel map: a point lies farther than 2^20 voxels from the origin; check units"
 _OFFSET = 1 << (_BITS - 1)
 _MASK = (1 << _BITS) - 1
 # Dense lookup grids up to this many cells (float32 distances: 256 MB); larger maps look cells
@@ -113,9 +114,7 @@ def pack_keys(cells: np.ndarray) -> np.ndarray:
     """One int64 key per integer cell (N, 3); raises when a cell is out of the packable range."""
     shifted = cells + _OFFSET
     if shifted.size and (shifted.min() < 0 or shifted.max() > _MASK):
-        raise ValueError(
-            "voxel map: a point lies farther than 2^20 voxels from the origin; check units"
-        )
+        raise ValueError(_TOO_FAR)
     return (shifted[:, 0] << (2 * _BITS)) | (shifted[:, 1] << _BITS) | shifted[:, 2]
 
 
@@ -864,9 +863,7 @@ def _t_pack(cells: Tensor) -> Tensor:
     """:func:`pack_keys` of integer cells (..., 3) on any device."""
     shifted = cells + _OFFSET
     if shifted.numel() and bool(((shifted.min() < 0) | (shifted.max() > _MASK)).item()):
-        raise ValueError(
-            "voxel map: a point lies farther than 2^20 voxels from the origin; check units"
-        )
+        raise ValueError(_TOO_FAR)
     return (shifted[..., 0] << (2 * _BITS)) | (shifted[..., 1] << _BITS) | shifted[..., 2]
 
 
@@ -998,14 +995,18 @@ def _t_frame_distances(
     offsets = torch.from_numpy(np.arange(-trunc, trunc + 0.25 * size, 0.5 * size)).to(dev)
     # One axis at a time (contiguous tensors), the same arithmetic as the reference's points.
     o, axes = origin.tolist(), unit.T.contiguous()
+    if (max(map(abs, o)) + float(along.max()) + trunc) / size >= 1 << 30:
+        raise ValueError(_TOO_FAR)  # (and the cells below would overflow int32)
     parts: list[list[Tensor]] = [[], [], []]
     for i in range(0, along.numel(), _PIXEL_CHUNK):
         t = torch.clamp(along[i : i + _PIXEL_CHUNK, None] + offsets, min=0.0)
         for a in range(3):
             points = o[a] + t * axes[a, i : i + _PIXEL_CHUNK, None]
-            parts[a].append(torch.floor(points / size).long().view(-1))
+            parts[a].append(torch.floor(points / size).int().view(-1))  # int32: 4 bytes a cell
     cx, cy, cz = (torch.cat(p) for p in parts)
     bounds = torch.stack([torch.stack([c.min(), c.max()]) for c in (cx, cy, cz)]).tolist()
+    if min(b[0] for b in bounds) < -_OFFSET or max(b[1] for b in bounds) > _MASK - _OFFSET:
+        raise ValueError(_TOO_FAR)
     lo = [b[0] - 1 for b in bounds]
     shape = [b[1] + 2 - b[0] + 1 for b in bounds]
     if math.prod(shape) <= MAX_DENSE_CELLS:
@@ -1020,10 +1021,10 @@ def _t_frame_distances(
         band[:, :, :-1] |= grid[:, :, 1:]
         flat = band.view(-1).nonzero().squeeze(1)  # sorted, as are the keys of the cells
         yz = shape[1] * shape[2]
-        cand = torch.stack([flat // yz, flat // shape[2] % shape[1], flat % shape[2]], 1)
+        cand = torch.stack([flat // yz, flat // shape[2] % shape[1], flat % shape[2]], 1).long()
         cand += torch.tensor(lo, device=dev)
     else:
-        keys = torch.unique(_t_pack(torch.stack([cx, cy, cz], dim=1)))
+        keys = torch.unique(_t_pack(torch.stack([cx, cy, cz], dim=1).long()))
         deltas = torch.from_numpy(_FACE_DELTAS).to(dev)
         cand = _t_unpack(torch.unique((keys[:, None] + deltas).reshape(-1)))
     centres = (cand.double() + 0.5) * size

@@ -10,6 +10,7 @@ import torch
 
 from csa_core.adapt.baselines import voxel_map as voxel_map_module
 from csa_core.adapt.baselines.voxel_map import VoxelMapConfig, VoxelSemanticMap
+from csa_core.data.camera import Intrinsics
 from csa_core.data.label_noise import corrupt_labels
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.data.synth import degrade_scene, generate_scene
@@ -125,3 +126,13 @@ def test_device_and_backend_options() -> None:
     if torch.cuda.is_available():
         with pytest.raises(ValueError, match="numpy reference runs on the CPU"):
             VoxelSemanticMap(backend="numpy", device="cuda")
+
+
+@pytest.mark.parametrize("backend", ["torch", "numpy"])
+def test_points_beyond_the_packable_range_are_an_error(backend: str) -> None:
+    intr = Intrinsics(fx=30.0, fy=30.0, cx=7.5, cy=5.5, width=16, height=12)
+    far = np.full((12, 16), 6e4, np.float32)  # 60 km: beyond 2^20 voxels of 5 cm
+    with pytest.raises(ValueError, match="farther than 2"):
+        VoxelSemanticMap(backend=backend).integrate(
+            np.ones((12, 16), np.uint8), far, np.eye(4), intr
+        )
