@@ -159,6 +159,9 @@ class SamplerConfig:
                 raise ValueError(f"sampler.{name} must be in [0, 1), got {getattr(self, name)}")
 
 
+SEMANTIC_FORMS: tuple[str, ...] = ("paper", "semantic_nerf")
+
+
 @dataclass
 class LossConfig:
     """Loss weights, docs/method.md "Fuse in 3D"."""
@@ -166,6 +169,11 @@ class LossConfig:
     color: float = 1.0  # L2 on colour
     depth: float = 0.1  # w_d: L1 on depth where the sensor measured it
     semantic: float = 0.04  # w_s: NLL of the normalised rendered class distribution (paper Eq. 3-4)
+    # Which semantic loss: "paper" (Eq. 3-4: per-sample softmax composited and normalised,
+    # then NLL) or "semantic_nerf" (Semantic-NeRF's original: logits composited with the
+    # weights, then softmax cross-entropy; its labels are then the composited logits' argmax).
+    # The weights stay detached either way (docs/method.md "Fuse in 3D").
+    semantic_form: Literal["paper", "semantic_nerf"] = "paper"
     free_space: float = (
         0.0  # ours (not in the paper): rendering weight in front of the measured surface
     )
@@ -177,6 +185,13 @@ class LossConfig:
     # depth: views that see a surface from close by get more say in its fused label. In no
     # preset: its measured effect is in docs/deviations.md, the row on near views' labels.
     semantic_depth_power: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.semantic_form not in SEMANTIC_FORMS:
+            raise ValueError(
+                f"loss.semantic_form must be one of {', '.join(SEMANTIC_FORMS)}, "
+                f"got {self.semantic_form!r}"
+            )
 
 
 @dataclass

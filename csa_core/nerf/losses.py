@@ -44,6 +44,22 @@ def semantic_loss(probs: Tensor, labels: Tensor, ray_weight: Tensor | None = Non
     return _mean(-torch.log(p.clamp_min(_LOG_EPS)), w)
 
 
+def semantic_cross_entropy(
+    logits: Tensor, labels: Tensor, ray_weight: Tensor | None = None
+) -> Tensor:
+    """Semantic-NeRF's original semantic loss (``LossConfig.semantic_form="semantic_nerf"``):
+    softmax cross-entropy of NYU40 ids ``labels`` (R,) against the composited logits (R, 40)
+    (``rendering.composited_logits``); channel ``k`` is id ``k + 1``, id 0 is ignored."""
+    known = labels > 0
+    if not bool(known.any()):
+        return logits.sum() * 0.0
+    ce = torch.nn.functional.cross_entropy(
+        logits[known], labels[known].long() - 1, reduction="none"
+    )
+    w = None if ray_weight is None else ray_weight[known]
+    return _mean(ce, w)
+
+
 NEAR_DEPTH = 0.3  # metres: ``near_view_weight`` stops growing below this depth
 
 
@@ -73,7 +89,9 @@ def psnr(mse: Tensor | float) -> float:
 def total_loss(
     out: dict[str, Tensor], batch: dict[str, Tensor], cfg: LossConfig
 ) -> dict[str, Tensor]:
-    """Weighted sum of the three losses; returns every term and ``loss``. A batch with
+    """Weighted sum of the three losses; returns every term and ``loss``. The semantic term
+    is ``cfg.semantic_form``'s: :func:`semantic_loss` of ``out["semantics"]`` (paper) or
+    :func:`semantic_cross_entropy` of ``out["semantic_logits"]`` (Semantic-NeRF). A batch with
     ``ray_weight`` (R,) averages every term over rays with those weights; ``semantic_weight``
     (R,) takes its place for the semantic term (``NerfTrainer.semantic_weights``)."""
     rw = batch.get("ray_weight")
@@ -84,7 +102,14 @@ def total_loss(
         total = total + cfg.depth * terms["depth"]
     if cfg.semantic > 0 and "labels" in batch and "semantics" in out:
         sw = batch.get("semantic_weight", rw)
-        terms["semantic"] = semantic_loss(out["semantics"], batch["labels"], sw)
+        if cfg.semantic_form == "semantic_nerf":
+            if "semantic_logits" not in out:
+                raise ValueError(
+                    "loss.semantic_form=semantic_nerf needs the composited 'semantic_logits'"
+                )
+            terms["semantic"] = semantic_cross_entropy(out["semantic_logits"], batch["labels"], sw)
+        else:
+            terms["semantic"] = semantic_loss(out["semantics"], batch["labels"], sw)
         total = total + cfg.semantic * terms["semantic"]
     if cfg.free_space > 0 and "free_space" in out:
         terms["free_space"] = out["free_space"]

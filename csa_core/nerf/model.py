@@ -23,7 +23,7 @@ from csa_core.nerf.normalization import SceneBox
 from csa_core.nerf.rendering import (
     RaySamples,
     accumulate_along_rays,
-    normalized_class_probabilities,
+    class_distribution,
     render_weights,
 )
 from csa_core.nerf.samplers import (
@@ -239,9 +239,11 @@ class SemanticNerf(nn.Module):
         result["opacity"] = accumulate_along_rays(weights, None, samples).squeeze(-1)
         result["weights"] = weights
         if semantics:
-            result["semantics"] = normalized_class_probabilities(
-                weights, out["semantic_logits"], samples
+            result["semantics"], composited = class_distribution(
+                weights, out["semantic_logits"], samples, self.config.loss.semantic_form
             )
+            if composited is not None:
+                result["semantic_logits"] = composited
         return result
 
     @torch.inference_mode()
@@ -287,7 +289,9 @@ class SemanticNerf(nn.Module):
             result["rgb"] = rgb if self.appearance is None else self.appearance(rgb, appearance)
         if semantics:
             logits = _blocked(self.field.semantic_head, g, None if sem is None else sem[keep])
-            result["semantics"] = normalized_class_probabilities(w, logits, kept)
+            result["semantics"], _ = class_distribution(
+                w, logits, kept, self.config.loss.semantic_form
+            )
         return result
 
     def _march_features(self, semantics: bool) -> FeatureDensityFn:
@@ -316,13 +320,18 @@ class SemanticNerf(nn.Module):
         return features[:, 0], features[:, 1 : 1 + g], sem
 
     def render_semantics(self, origins: Tensor, dirs: Tensor, samples: RaySamples) -> Tensor:
-        """Class distributions (R, C) with gradients for the semantic head only (the density,
-        hence the weights, computed without): one semantic training step's forward pass."""
+        """What the semantic loss of ``config.loss.semantic_form`` reads, (R, C), with
+        gradients for the semantic head only (the density, hence the weights, computed
+        without): one semantic training step's forward pass. ``paper``: the class
+        distributions; ``semantic_nerf``: the composited logits."""
         ri = samples.ray_indices
         pts = origins[ri] + dirs[ri] * samples.t_mids[:, None]
         sigma, logits = self.field.semantics(self.box.to_unit(pts))
         weights, _, _ = render_weights(sigma, samples, dirs.norm(dim=-1))
-        return normalized_class_probabilities(weights, logits, samples)
+        probs, composited = class_distribution(
+            weights, logits, samples, self.config.loss.semantic_form
+        )
+        return probs if composited is None else composited
 
     def render_rays(
         self,

@@ -95,3 +95,22 @@ def normalized_class_probabilities(
     """
     acc = accumulate_along_rays(weights.detach(), torch.softmax(logits, dim=-1), samples)
     return acc / (acc.sum(dim=-1, keepdim=True) + eps)
+
+
+def composited_logits(weights: Tensor, logits: Tensor, samples: RaySamples) -> Tensor:
+    """Semantic-NeRF's semantic map: the per-sample logits summed along the ray with the
+    (detached) rendering weights -> ``(num_rays, num_classes)``; its softmax is the class
+    distribution and its cross-entropy the original loss (``LossConfig.semantic_form``)."""
+    return accumulate_along_rays(weights.detach(), logits, samples)
+
+
+def class_distribution(
+    weights: Tensor, logits: Tensor, samples: RaySamples, form: str = "paper"
+) -> tuple[Tensor, Tensor | None]:
+    """The rendered class distribution (R, C) of ``LossConfig.semantic_form`` ``form`` and,
+    for ``semantic_nerf``, the composited logits it is the softmax of (``None`` for
+    ``paper``, whose distribution is :func:`normalized_class_probabilities`)."""
+    if form == "semantic_nerf":
+        composited = composited_logits(weights, logits, samples)
+        return torch.softmax(composited, dim=-1), composited
+    return normalized_class_probabilities(weights, logits, samples), None

@@ -20,7 +20,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from csa_core.nerf.losses import semantic_loss
+from csa_core.nerf.losses import semantic_cross_entropy, semantic_loss
 from csa_core.nerf.model import SemanticNerf
 from csa_core.nerf.rays import RayBank
 
@@ -222,9 +222,14 @@ class NerfTrainer:
                     stratified=True,
                     generator=gen,
                 )
-            probs = nerf.render_semantics(origins, dirs, samples)
+            scores = nerf.render_semantics(origins, dirs, samples)
             weight = self.semantic_weights(ids, ray_weight)
-            loss = semantic_loss(probs, self.rays.labels[ids], weight)
+            form_loss = (
+                semantic_cross_entropy
+                if nerf.config.loss.semantic_form == "semantic_nerf"
+                else semantic_loss
+            )
+            loss = form_loss(scores, self.rays.labels[ids], weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
