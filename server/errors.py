@@ -4,7 +4,8 @@
 An unexpected exception is answered 500 on the same keep-alive connection (see
 :class:`UnhandledErrorMiddleware`); a value the database refuses (a number out of its range,
 a NUL character in text) is the client's input and is answered 422. A write that finds the
-disk full is answered 507 (:func:`storage_full`; docs/operations.md "Full disk").
+disk full is answered 507 (:func:`storage_full`; docs/operations.md "Full disk"), and one that
+finds the database unreachable 503 (docs/operations.md "Database restarts").
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from sqlalchemy.exc import DataError
+from sqlalchemy.exc import DataError, InterfaceError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Receive, Scope, Send
 
@@ -108,14 +109,42 @@ class UnhandledErrorMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        tracking_send = TrackingSend(send)
-        try:
-            await self.app(scope, receive, tracking_send)
-        except Exception as exc:
-            if tracking_send.started or isinstance(exc, self.passthrough):
-                raise
-            log.exception("unhandled error in %s %s", scope.get("method"), scope.get("path"))
-            await _internal_error(exc)(scope, receive, send)
+        # A read whose pooled connection died under it (the database restarted) runs once more
+        # on a fresh connection: it changes nothing, so running it twice is safe.
+        tries = 2 if scope.get("method") in ("GET", "HEAD") else 1
+        for attempt in range(tries):
+            tracking_send = TrackingSend(send)
+            try:
+                await self.app(scope, receive, tracking_send)
+                return
+            except Exception as exc:
+                if tracking_send.started or isinstance(exc, self.passthrough):
+                    raise
+                if _database_unavailable(exc):
+                    if attempt + 1 < tries and getattr(exc, "connection_invalidated", False):
+                        log.warning("database connection lost during %s %s; reading again", scope.get("method"), scope.get("path"))
+                        continue
+                    await _unavailable(exc)(scope, receive, send)
+                    return
+                log.exception("unhandled error in %s %s", scope.get("method"), scope.get("path"))
+                await _internal_error(exc)(scope, receive, send)
+                return
+
+
+def _database_unavailable(exc: BaseException) -> bool:
+    """The database cannot be reached (down, restarting, refusing connections) or stayed
+    locked past the busy timeout: a state of the service, not a fault of the request."""
+    return isinstance(exc, OperationalError | InterfaceError)
+
+
+def _unavailable(exc: BaseException) -> JSONResponse:
+    # The driver's words name the database's host and port: in the log, not in the answer.
+    log.error("database unavailable: %s", str(getattr(exc, "orig", exc)).strip()[:300] or type(exc).__name__)
+    return JSONResponse(
+        error_body("database_unavailable", "the service's database is unavailable (not reachable, restarting or locked); retry shortly"),
+        status_code=503,
+        headers={"Retry-After": "5"},
+    )
 
 
 def install_error_handlers(app: FastAPI) -> None:

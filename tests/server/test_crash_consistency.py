@@ -274,3 +274,67 @@ def test_a_full_disk_answers_507_and_leaves_nothing_half_written(synth_scene: Pa
     finally:
         faults.configure(None)
         live.stop()
+
+
+def test_postgresql_restarted_under_traffic_the_service_recovers_by_itself(tmp_path: Path) -> None:
+    """A PostgreSQL server that this test starts itself (never the shared one) is restarted
+    while a client keeps reading: reads answer 200 before, 503 naming the database (never 500)
+    while it is down, and 200 again after it is back, without restarting the service; a write
+    after the restart is stored."""
+    import threading
+
+    from tests.pg import PostgresDatabases, PostgresUnavailable, PrivateServer
+
+    try:
+        pg = PrivateServer.start()
+    except PostgresUnavailable as e:
+        pytest.skip(f"cannot start a private PostgreSQL server: {e}")
+    databases = PostgresDatabases(pg.url, server=pg)
+    live = None
+    try:
+        live = start_server(test_settings(tmp_path / "data", database_url=databases.create(), embedded_worker=False))
+        seen: list[tuple[str, int | str]] = []  # (phase, status or error)
+        phase = ["before"]
+        stop = threading.Event()
+
+        def read_forever() -> None:
+            with live.client(timeout=30) as c:
+                while not stop.is_set():
+                    try:
+                        c.scenes()
+                        seen.append((phase[0], 200))
+                    except CSAHTTPError as e:
+                        seen.append((phase[0], f"{e.status} {e.code}"))
+                    except CSAConnectionError as e:  # the service itself must stay up
+                        seen.append((phase[0], f"no answer: {e}"))
+                    stop.wait(0.05)
+
+        with live.client() as c:
+            c.create_scene("before-restart")
+        reader = threading.Thread(target=read_forever, daemon=True)
+        reader.start()
+        wait_for(lambda: len(seen) >= 5, 60, "reads before the restart")
+        phase[0] = "down"
+        stopped = pg._run(str(pg.bin_dir / "pg_ctl"), "-D", "data", "-m", "fast", "-w", "stop", timeout=60)
+        assert stopped.returncode == 0, stopped.stderr
+        wait_for(lambda: sum(p == "down" for p, _ in seen) >= 5, 60, "reads while the database is down")
+        started = pg._run(str(pg.bin_dir / "pg_ctl"), "-D", "data", "-l", "server.log", "-w", "restart", timeout=60)
+        assert started.returncode == 0, started.stderr
+        phase[0] = "back"
+        wait_for(lambda: any(p == "back" and s == 200 for p, s in seen), 60, "a read to succeed after the restart")
+        first_ok = next(i for i, (p, s) in enumerate(seen) if p == "back" and s == 200)
+        wait_for(lambda: len(seen) >= first_ok + 20, 60, "more reads after the restart")
+        stop.set()
+        reader.join(30)
+
+        assert all(s == 200 for p, s in seen if p == "before"), seen
+        assert all(s == 200 for s in [s for _, s in seen[first_ok:]]), seen[first_ok:]
+        outage = {s for p, s in seen if p != "before" and s != 200}
+        assert outage and outage <= {"503 database_unavailable"}, seen
+        with live.client() as c:
+            c.create_scene("after-restart")
+            assert [s.name for s in c.scenes()] == ["before-restart", "after-restart"]
+    finally:
+        if live is not None:
+            live.stop()
+        databases.close()
