@@ -1136,11 +1136,12 @@ class _TorchSurface:
     """:class:`_Surface` on any device. The march is the reference's (windows of samples half
     a voxel apart from where each ray enters a stopping cell, by an exact voxel traversal), but
     it skips empty space with a distance field on the voxel grid instead of coarse cells: for
-    each cell, how many cells away (Chebyshev, up to ``_T_SKIP``) the nearest stopping cell is.
-    A ray in a cell ``D >= 2`` cells from one advances ``D - 1`` voxels at once (every point on
-    the way lies in a cell less than ``D`` away from its own); nearer, it walks the next
-    ``_T_PIECES`` cells exactly. Samples are interpolated by ``grid_sample``. Maps too large for
-    a dense grid look cells up in sorted keys and walk every cell."""
+    each cell, how far (Chebyshev, in cells) the nearest stopping cell is at least. A ray in a
+    cell whose nearest stopping cell is more than ``r`` cells away advances ``r`` voxels at once
+    (``r`` a power of two up to ``_T_SKIP``; every point on the way lies in a cell at most ``r``
+    cells from its own); next to one, it walks the next ``_T_PIECES`` cells exactly. Samples are
+    interpolated by ``grid_sample``. Maps too large for a dense grid look cells up in sorted keys
+    and walk every cell."""
 
     def __init__(self, voxel_map: VoxelSemanticMap):
         self.voxel_size = size = voxel_map.voxel_size
@@ -1375,9 +1376,18 @@ def _labels_at_depth_torch(
     valid = np.isfinite(depth) & (depth > 0)
     origin, dirs, mask = _t_frame_rays(voxel_map, valid, pose, intrinsics)
     keys = _t_surface_keys(voxel_map, depth, valid, dirs, origin)[0]
-    scores = _t_scores_at(voxel_map, keys)
-    best, arg = scores.max(dim=1)
-    labels = torch.where(best > 0, arg + 1, UNKNOWN)
+    # The voxels' own labels where they have scores (one arg-max per voxel, not per pixel) ...
+    rows = _t_rows_of(voxel_map._keys, keys)
+    labels = torch.zeros(keys.numel(), dtype=torch.int64, device=keys.device)
+    hit = (rows >= 0).nonzero().squeeze(1)
+    if hit.numel():
+        best, arg = voxel_map._scores.max(dim=1)
+        labels[hit] = torch.where(best > 0, arg + 1, UNKNOWN)[rows[hit]]
+    # ... else those of their neighbours' summed scores, as :meth:`_scores_at`.
+    missing = (rows < 0).nonzero().squeeze(1)
+    if voxel_map.config.search_radius and missing.numel() and voxel_map.num_voxels:
+        best, arg = _t_neighbour_scores(voxel_map, keys[missing]).max(dim=1)
+        labels[missing] = torch.where(best > 0, arg + 1, UNKNOWN)
     out = torch.zeros(mask.numel(), dtype=torch.uint8, device=mask.device)
     out[mask] = labels.to(torch.uint8)
     return _as_numpy(out.view(valid.shape))
@@ -1417,16 +1427,22 @@ def _t_scores_at(voxel_map: VoxelSemanticMap, keys: Tensor) -> Tensor:
     missing = (~hit).nonzero().squeeze(1)
     if r == 0 or missing.numel() == 0 or voxel_map.num_voxels == 0:
         return scores
-    offsets = torch.from_numpy(_cube_offsets(r)).to(keys.device)
-    cells = _t_unpack(keys[missing])[:, None, :] + offsets
+    scores[missing] = _t_neighbour_scores(voxel_map, keys[missing])
+    return scores
+
+
+def _t_neighbour_scores(voxel_map: VoxelSemanticMap, keys: Tensor) -> Tensor:
+    """Summed scores (N, C) of the voxels within ``search_radius`` cells of the voxels
+    ``keys`` (N,)."""
+    offsets = torch.from_numpy(_cube_offsets(voxel_map.config.search_radius)).to(keys.device)
+    cells = _t_unpack(keys)[:, None, :] + offsets
     rows = _t_rows_of(voxel_map._keys, _t_pack(cells.view(-1, 3)))
-    found = (rows >= 0).nonzero().squeeze(1)  # (missing voxel, neighbour) pairs with scores
-    # The sums as a product with a sparse 0/1 (missing voxels, voxels) matrix.
+    found = (rows >= 0).nonzero().squeeze(1)  # (voxel, neighbour) pairs with scores
+    # The sums as a product with a sparse 0/1 (voxels, voxels with scores) matrix.
     neighbours = torch.sparse_coo_tensor(
         torch.stack([torch.div(found, offsets.shape[0], rounding_mode="floor"), rows[found]]),
         torch.ones(found.numel(), device=keys.device),
-        (missing.numel(), voxel_map.num_voxels),
+        (keys.numel(), voxel_map.num_voxels),
         check_invariants=False,
     )
-    scores[missing] = torch.sparse.mm(neighbours, voxel_map._scores)
-    return scores
+    return torch.sparse.mm(neighbours, voxel_map._scores)
