@@ -3,6 +3,8 @@ multi-step (continual) adaptation and memory footprint, for our method and the b
 
 Each experiment is one module with ``NAME`` and ``run(inputs) -> ExperimentReport``;
 :mod:`csa_core.experiments.report` writes the tables, plots and ``config.json``.
+:mod:`csa_core.experiments.paper` (``csa experiment paper``) runs them together into one
+report of the paper's tables, with the paper's numbers beside ours.
 """
 
 from __future__ import annotations

@@ -128,10 +128,18 @@ class ExperimentInputs:
         folder.mkdir(parents=True)
         return folder
 
-    def finished_run(self, parts: Sequence[str], config: AdaptConfig, method: str, b: np.ndarray):
+    def finished_run(
+        self,
+        parts: Sequence[str],
+        config: AdaptConfig,
+        method: str,
+        b: np.ndarray,
+        scenes: Sequence[Scene] | None = None,
+    ):
         """With :attr:`resume`, the ``ContinualResult`` an earlier invocation wrote to
         ``out/runs/<parts>/results.json``, if that run finished (its metrics are written
-        last) with the same scenes, pre-training scenes, method and config, and the same
+        last) with the same scenes (``scenes``, default the inputs' sequence: a one-step run
+        is a run over its one scene), pre-training scenes, method and config, and the same
         pre-trained network (``b``, the network's validation mIoU per scene, must match
         exactly); else ``None`` and the run is done again."""
         from csa_core.adapt.continual import ContinualResult
@@ -149,7 +157,7 @@ class ExperimentInputs:
         defaults = json.loads(json.dumps(AdaptConfig().to_dict(), default=float))
         same = (
             bool(result.metrics)
-            and result.scenes == [s.name for s in self.scenes]
+            and result.scenes == [s.name for s in (self.scenes if scenes is None else scenes)]
             and recorded.pop("method", None) == method
             and recorded.pop("pretrain_scenes", None) == [s.name for s in self.pretrain_scenes]
             and _same_config(expected, recorded, defaults)
@@ -220,6 +228,33 @@ def _same_config(expected: Any, recorded: Any, defaults: Any) -> bool:
     return expected == recorded
 
 
+def check_options(
+    preset_name: str,
+    mode: str | None = None,
+    adabn: str | None = None,
+    overrides: Sequence[str] = (),
+) -> list[str]:
+    """Check the preset, mode, AdaBN choice and ``--set`` items (on the preset) before any
+    work; returns the overrides as a list."""
+    from csa_core.adapt.config import PRESETS
+
+    if preset_name not in PRESETS:
+        raise CSAInputError(
+            "--preset", f"unknown preset {preset_name!r} (choose from {', '.join(PRESETS)})"
+        )
+    if mode is not None and mode not in MODES:
+        raise CSAInputError("--mode", f"unknown mode {mode!r} (choose from {', '.join(MODES)})")
+    if adabn is not None and adabn not in ADABN_CHOICES:
+        raise CSAInputError("--adabn", f"expected one of {', '.join(ADABN_CHOICES)}, got {adabn!r}")
+    overrides = list(overrides)
+    apply_overrides(preset(preset_name), overrides)
+    if adabn == "both" and any(item.partition("=")[0].strip() == "adabn" for item in overrides):
+        raise CSAInputError(
+            "--set adabn", "--adabn both runs every method with and without AdaBN: drop one of them"
+        )
+    return overrides
+
+
 def load_inputs(
     model_path: Path,
     scene_paths: Sequence[Path],
@@ -240,24 +275,10 @@ def load_inputs(
     """Check and load everything an experiment needs. ``size`` defaults to the size the
     network was trained at (then the scenes' own); ``methods`` must be in ``allowed_methods``;
     ``overrides`` (``--set`` items) are checked on the preset before anything is loaded."""
-    from csa_core.adapt.config import PRESETS
     from csa_core.device import resolve_device
     from csa_core.seg.checkpoint import load_checkpoint
 
-    if preset_name not in PRESETS:
-        raise CSAInputError(
-            "--preset", f"unknown preset {preset_name!r} (choose from {', '.join(PRESETS)})"
-        )
-    if mode is not None and mode not in MODES:
-        raise CSAInputError("--mode", f"unknown mode {mode!r} (choose from {', '.join(MODES)})")
-    if adabn is not None and adabn not in ADABN_CHOICES:
-        raise CSAInputError("--adabn", f"expected one of {', '.join(ADABN_CHOICES)}, got {adabn!r}")
-    overrides = list(overrides)
-    apply_overrides(preset(preset_name), overrides)
-    if adabn == "both" and any(item.partition("=")[0].strip() == "adabn" for item in overrides):
-        raise CSAInputError(
-            "--set adabn", "--adabn both runs every method with and without AdaBN: drop one of them"
-        )
+    overrides = check_options(preset_name, mode, adabn, overrides)
     for name in methods or ():
         check_method(name, allowed_methods, "--methods")
     if methods is not None and not methods:

@@ -16,15 +16,29 @@ import copy
 import time
 
 from csa_core.adapt.baselines.mapping import mapping_pseudo_labels
+from csa_core.adapt.config import AdaptConfig
 from csa_core.adapt.finetune import apply_adabn, step_nerf_budget
 from csa_core.adapt.pseudo_labels import label_miou, make_pseudo_labels
+from csa_core.data.scene import Scene
 from csa_core.experiments.inputs import ExperimentInputs
 from csa_core.experiments.report import ExperimentReport, markdown_table, mean_std, pct
+from csa_core.seg.models import SegmentationNet
 
 NAME = "pseudo-labels"
 # Label sources, in the order of the table's columns.
 SOURCES: tuple[str, ...] = ("network", "mapping", "nerf")
 TITLES = {"network": "Network", "mapping": "Mapping", "nerf": "NeRF (ours)"}
+
+
+def labelling_network(model: SegmentationNet, scene: Scene, config: AdaptConfig) -> SegmentationNet:
+    """The network that labels ``scene``'s training views under ``config``: ``model`` itself,
+    or a copy with BatchNorm statistics re-estimated on the scene's camera images where
+    ``config.adabn_before_labels`` (as the continual step labels)."""
+    if not config.adabn_before_labels:
+        return model
+    net = copy.deepcopy(model)
+    apply_adabn(net, [f.color for f in scene.train_frames], None, config.seg.seed, config.seg.device)
+    return net
 
 
 def run(inputs: ExperimentInputs) -> ExperimentReport:
@@ -38,16 +52,7 @@ def run(inputs: ExperimentInputs) -> ExperimentReport:
             t0 = time.perf_counter()
             # The NeRF of the fine-tuning modes: the whole fit before the pseudo-labels.
             budget = step_nerf_budget(config, scene, mode="gi_nl")
-            net = model
-            if config.adabn_before_labels:
-                net = copy.deepcopy(model)
-                apply_adabn(
-                    net,
-                    [f.color for f in scene.train_frames],
-                    None,
-                    config.seg.seed,
-                    config.seg.device,
-                )
+            net = labelling_network(model, scene, config)
             _, pseudo = make_pseudo_labels(net, scene, budget, config.seg.device, color=False)
             mapped = mapping_pseudo_labels(scene, pseudo.predictions)
             values = {

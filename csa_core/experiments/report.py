@@ -104,6 +104,37 @@ class Plot:
 
 
 @dataclass
+class Bars:
+    """Grouped bars written as ``<file>`` (PNG): one group per ``groups`` entry, one bar per
+    series in each group (``std`` as error bars); a series may be hatched (e.g. the paper's
+    own numbers beside ours) and may miss groups (NaN: no bar)."""
+
+    file: str
+    title: str
+    ylabel: str
+    groups: list[str]
+    series: list[Series]  # x unused: the i-th y belongs to groups[i]
+    hatched: list[str] = field(default_factory=list)  # labels of the series drawn hatched
+    ylim: tuple[float, float] | None = None
+
+
+@dataclass
+class Heatmap:
+    """A matrix written as ``<file>`` (PNG), each cell annotated; NaN cells are left blank."""
+
+    file: str
+    title: str
+    values: list[list[float]]
+    row_labels: list[str]
+    col_labels: list[str]
+    xlabel: str = ""
+    ylabel: str = ""
+    fmt: str = "{:.1f}"
+    vmin: float | None = None
+    vmax: float | None = None
+
+
+@dataclass
 class ExperimentReport:
     """What an experiment produced; :func:`write_report` puts it on disk."""
 
@@ -112,19 +143,34 @@ class ExperimentReport:
     csv_header: list[str]
     csv_rows: list[list[Any]]
     runs: list[dict[str, Any]] = field(default_factory=list)
-    plots: list[Plot] = field(default_factory=list)
+    plots: list[Plot | Bars | Heatmap] = field(default_factory=list)
     extra_csv: dict[str, tuple[list[str], list[list[Any]]]] = field(default_factory=dict)
 
 
-def save_plot(path: Path, plot: Plot) -> None:
-    """Render ``plot`` to a PNG at ``path`` with matplotlib's Agg canvas (no pyplot, no
-    global backend switch, so it is safe in a server process or a test run)."""
+def _figure(size: tuple[float, float] = (6.4, 4.0)):
+    """A matplotlib figure on an Agg canvas (no pyplot, no global backend switch, so it is
+    safe in a server process or a test run) and its one axes."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(6.4, 4.0), dpi=100)
+    fig = Figure(figsize=size, dpi=100)
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
+    return fig, fig.add_subplot(1, 1, 1)
+
+
+def _save(fig, path: Path) -> None:
+    fig.tight_layout()
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, format="png")
+
+
+def save_plot(path: Path, plot: Plot | Bars | Heatmap) -> None:
+    """Render ``plot`` (lines, grouped bars or a heatmap) to a PNG at ``path``."""
+    if isinstance(plot, Bars):
+        return _save_bars(path, plot)
+    if isinstance(plot, Heatmap):
+        return _save_heatmap(path, plot)
+    fig, ax = _figure()
     for s in plot.series:
         y = np.asarray(s.y, dtype=np.float64)
         err = np.asarray(s.std, dtype=np.float64) if s.std is not None else None
@@ -147,9 +193,74 @@ def save_plot(path: Path, plot: Plot) -> None:
     ax.grid(True, alpha=0.3)
     if plot.series:
         ax.legend(fontsize="small")
-    fig.tight_layout()
-    with atomic_file(path) as tmp:
-        fig.savefig(tmp, format="png")
+    _save(fig, path)
+
+
+def _save_bars(path: Path, plot: Bars) -> None:
+    n_groups, n_series = len(plot.groups), max(1, len(plot.series))
+    fig, ax = _figure((max(6.4, 0.5 + 0.35 * n_groups * n_series), 4.2))
+    width = 0.8 / n_series
+    x = np.arange(n_groups, dtype=np.float64)
+    for k, s in enumerate(plot.series):
+        y = np.asarray(s.y, dtype=np.float64)
+        err = np.asarray(s.std, dtype=np.float64) if s.std is not None else None
+        if err is not None and not (np.nan_to_num(err) > 0).any():
+            err = None
+        ax.bar(
+            x + (k - (n_series - 1) / 2) * width,
+            np.nan_to_num(y),
+            width,
+            yerr=None if err is None else np.nan_to_num(err),
+            capsize=2,
+            label=s.label,
+            color=s.color,
+            hatch="//" if s.label in plot.hatched else None,
+            edgecolor="0.2" if s.label in plot.hatched else None,
+            alpha=0.55 if s.label in plot.hatched else 1.0,
+        )
+    ax.axhline(0.0, color="0.3", linewidth=0.8)
+    ax.set_xticks(x)
+    ax.set_xticklabels(plot.groups, rotation=20, ha="right")
+    ax.set_title(plot.title)
+    ax.set_ylabel(plot.ylabel)
+    if plot.ylim is not None:
+        ax.set_ylim(*plot.ylim)
+    ax.grid(True, axis="y", alpha=0.3)
+    if plot.series:
+        ax.legend(fontsize="small")
+    _save(fig, path)
+
+
+def _save_heatmap(path: Path, plot: Heatmap) -> None:
+    values = np.asarray(plot.values, dtype=np.float64)
+    rows, cols = values.shape
+    fig, ax = _figure((max(4.8, 1.6 + 1.1 * cols), max(3.6, 1.2 + 0.6 * rows)))
+    image = ax.imshow(
+        np.ma.masked_invalid(values), cmap="viridis", vmin=plot.vmin, vmax=plot.vmax
+    )
+    fig.colorbar(image, ax=ax)
+    finite = values[np.isfinite(values)]
+    middle = float(finite.mean()) if finite.size else 0.0
+    for i in range(rows):
+        for j in range(cols):
+            if math.isfinite(values[i, j]):
+                ax.text(
+                    j,
+                    i,
+                    plot.fmt.format(values[i, j]),
+                    ha="center",
+                    va="center",
+                    fontsize="small",
+                    color="black" if values[i, j] > middle else "white",
+                )
+    ax.set_xticks(range(cols))
+    ax.set_xticklabels(plot.col_labels, rotation=20, ha="right")
+    ax.set_yticks(range(rows))
+    ax.set_yticklabels(plot.row_labels)
+    ax.set_xlabel(plot.xlabel)
+    ax.set_ylabel(plot.ylabel)
+    ax.set_title(plot.title)
+    _save(fig, path)
 
 
 def write_report(
