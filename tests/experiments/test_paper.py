@@ -231,3 +231,42 @@ def test_tab3_writes_the_r_heatmap_and_acc_bwt(workspace, tmp_path, capsys, monk
     assert (
         tmp_path / "runs" / "multi-step" / "finetune" / "adabn-on" / "seed0" / "results.json"
     ).is_file()
+
+
+def test_the_demo_rooms_and_the_pretrained_network_are_made_once(tmp_path, monkeypatch):
+    """Without scene folders and --model: the demo's rooms and a pre-trained network, read
+    back on a rerun (no second synthesis or pre-training); other pre-training inputs train
+    again."""
+    import argparse
+
+    import csa_core.cli.demo_adapt as demo_adapt
+    import csa_core.data.synth as synth
+    from csa_core.cli.experiment import _pretrained, _rooms
+
+    made: list[str] = []
+    real_synth, real_pretrain = synth.synthesize, demo_adapt.pretrain_network
+
+    def counting_synth(*args, **kwargs):
+        made.append("rooms")
+        return real_synth(*args, **kwargs)
+
+    def counting_pretrain(*args, **kwargs):
+        made.append("pretrain")
+        return real_pretrain(*args, **kwargs)
+
+    monkeypatch.setattr(synth, "synthesize", counting_synth)
+    monkeypatch.setattr(demo_adapt, "pretrain_network", counting_pretrain)
+    size = (48, 36)
+    rooms = _rooms(tmp_path / "scenes", "apartment", 1, 6, size, 0)
+    assert [p.name for p in rooms] == ["apartment_0_0"] and made == ["rooms"]
+    assert _rooms(tmp_path / "scenes", "apartment", 1, 6, size, 0) == rooms and made == ["rooms"]
+    args = argparse.Namespace(
+        out=tmp_path, pretrain_epochs=1, synth_seed=0, redo=False, device="cpu"
+    )
+    ckpt = _pretrained(args, rooms, size)
+    assert ckpt == tmp_path / "pretrained.safetensors" and ckpt.is_file()
+    assert made == ["rooms", "pretrain"]
+    assert _pretrained(args, rooms, size) == ckpt and made == ["rooms", "pretrain"]
+    args.pretrain_epochs = 2  # another pre-training: done again
+    _pretrained(args, rooms, size)
+    assert made == ["rooms", "pretrain", "pretrain"]
