@@ -544,7 +544,7 @@ def _tab3(
         report.plots.append(
             Heatmap(
                 file=f"paper-tab3-R-{method}.png",
-                title=f"R of {title}: val mIoU % on scene j after step i",
+                title=f"R, {title} (val mIoU %)",
                 values=(100 * R).tolist(),
                 row_labels=[f"after {i + 1}: {s}" for i, s in enumerate(names)],
                 col_labels=names,

@@ -234,13 +234,16 @@ def _save_bars(path: Path, plot: Bars) -> None:
 def _save_heatmap(path: Path, plot: Heatmap) -> None:
     values = np.asarray(plot.values, dtype=np.float64)
     rows, cols = values.shape
-    fig, ax = _figure((max(4.8, 1.6 + 1.1 * cols), max(3.6, 1.2 + 0.6 * rows)))
+    fig, ax = _figure((max(6.4, 3.2 + 1.1 * cols), max(4.0, 1.6 + 0.6 * rows)))
     image = ax.imshow(
         np.ma.masked_invalid(values), cmap="viridis", vmin=plot.vmin, vmax=plot.vmax
     )
     fig.colorbar(image, ax=ax)
     finite = values[np.isfinite(values)]
-    middle = float(finite.mean()) if finite.size else 0.0
+    if plot.vmin is not None and plot.vmax is not None:
+        middle = (plot.vmin + plot.vmax) / 2  # white text on the colour map's dark half
+    else:
+        middle = float(finite.mean()) if finite.size else 0.0
     for i in range(rows):
         for j in range(cols):
             if math.isfinite(values[i, j]):
