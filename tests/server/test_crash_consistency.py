@@ -19,11 +19,13 @@ import sys
 from pathlib import Path
 
 import pytest
+from sqlalchemy import func, select
 
 from client import CSAClient
 from client.errors import CSAConnectionError, CSAHTTPError
 from server import capabilities, faults
 from server.artifacts import ArtifactStore
+from server.db.models import NerfCheckpoint
 from server.db.session import make_engine, make_sessionmaker
 from server.doctor import examine
 from tests.server.conftest import (
@@ -86,6 +88,15 @@ class Chain:
             self.proc.terminate()
             self.proc.wait(timeout=60)
 
+    def nerfs(self) -> int:
+        """NeRF checkpoints in the database (read directly: a killed job has no API to ask)."""
+        engine = make_engine(test_settings(self.data, database_url=self.db_url).resolved_database_url)
+        try:
+            with make_sessionmaker(engine)() as s:
+                return s.scalar(select(func.count()).select_from(NerfCheckpoint)) or 0
+        finally:
+            engine.dispose()
+
     def doctor(self, expect: dict[str, int]) -> None:
         """``--dry-run`` reports ``expect`` (counts by title; every other count 0), the repair
         exits 0, and a second ``--dry-run`` finds nothing."""
@@ -126,6 +137,7 @@ def frame_parts(room: Path, name: str) -> dict:
     }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_killed_at_every_fault_point_loses_no_acknowledged_write_and_leaves_no_orphan(request, backend: str, tmp_path: Path) -> None:
     from csa_core.data.synth import synthesize
@@ -180,6 +192,7 @@ def test_killed_at_every_fault_point_loses_no_acknowledged_write_and_leaves_no_o
             job = c.create_job("fit_nerf", scene="room", labels="ground_truth", **TINY_NERF)
             wait_for(lambda: chain.proc.poll() is not None, 300, "the API to die at job.computed")
         chain.killed()
+        assert chain.nerfs() == 0  # computed, not registered: nothing of it is visible
         chain.doctor({"jobs running with no live owner": 1, "scratch folders of dead jobs and uploads": 1})
 
         # 6. The job, re-queued once by the repair, runs again and succeeds; a second fit is
@@ -193,6 +206,7 @@ def test_killed_at_every_fault_point_loses_no_acknowledged_write_and_leaves_no_o
             second = c.create_job("fit_nerf", scene="room", labels="ground_truth", steps=40, **{k: v for k, v in TINY_NERF.items() if k != "steps"})
             wait_for(lambda: chain.proc.poll() is not None, 300, "the API to die at job.registering")
         chain.killed()
+        assert chain.nerfs() == 1  # the first job's; the second's rows were never committed
         chain.doctor({"blob files without an artifact row": 1, "jobs running with no live owner": 1, "scratch folders of dead jobs and uploads": 1})
 
         # 7. No fault: everything answered is there and intact, and the second job finishes.
