@@ -108,7 +108,8 @@ DEMO_SIZE = (128, 96)
 
 
 def register_paper(cmds: argparse._SubParsersAction) -> None:
-    from csa_core.experiments.paper import FRAMEWORKS, TABLES
+    from csa_core.experiments import PAPER_FRAMEWORKS as FRAMEWORKS
+    from csa_core.experiments import PAPER_TABLES as TABLES
 
     e = cmds.add_parser(
         "paper",

@@ -26,6 +26,12 @@ EXPERIMENTS: dict[str, str] = {
     "footprint": "csa_core.experiments.footprint",
 }
 
+# What ``csa experiment paper --tables`` may name, in the report's order, and the NeRF presets
+# of its frameworks table by default (here, not in csa_core.experiments.paper, so that building
+# the command line imports no torch).
+PAPER_TABLES: tuple[str, ...] = ("1", "2", "3", "ablations", "framework")
+PAPER_FRAMEWORKS: tuple[str, ...] = ("reference", "fast")
+
 
 def experiment_module(name: str) -> ModuleType:
     """The module of experiment ``name``."""

@@ -46,7 +46,13 @@ from csa_core.adapt.pseudo_labels import (
 from csa_core.atomic_io import write_text_atomic
 from csa_core.data.scene import Scene
 from csa_core.errors import CSAInputError
-from csa_core.experiments import multi_step, one_step, paper_numbers
+from csa_core.experiments import (
+    PAPER_FRAMEWORKS,
+    PAPER_TABLES,
+    multi_step,
+    one_step,
+    paper_numbers,
+)
 from csa_core.experiments.inputs import ExperimentInputs
 from csa_core.experiments.pseudo_labels import labelling_network
 from csa_core.experiments.report import (
@@ -64,7 +70,7 @@ log = logging.getLogger(__name__)
 
 NAME = "paper"
 # What ``--tables`` may name, in the report's order.
-TABLES: tuple[str, ...] = ("1", "2", "3", "ablations", "framework")
+TABLES: tuple[str, ...] = PAPER_TABLES
 TAB1_SOURCES: tuple[str, ...] = ("network", "mapping", "nerf", "joint")
 TAB1_TITLES = {
     "network": "Network",
@@ -93,7 +99,7 @@ ABLATION_TITLES = {
     "semantic-nerf-loss": "Semantic-NeRF's loss: CE of composited logits",
     "no-depth-loss": "no depth loss, w_d = 0",
 }
-FRAMEWORKS: tuple[str, ...] = ("reference", "fast")
+FRAMEWORKS: tuple[str, ...] = PAPER_FRAMEWORKS
 # Folders of the units under ``out/runs``: Tab. 2's and Tab. 3's are the ``one-step`` and
 # ``multi-step`` experiments' own, so either command can reuse the other's finished runs.
 ABLATIONS_FOLDER = "paper-ablations"
