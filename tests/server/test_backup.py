@@ -115,3 +115,51 @@ def test_restore_refuses_a_corrupt_or_unfinished_backup_before_touching_the_targ
     (tmp_path / "bk" / MANIFEST).unlink()
     with pytest.raises(BackupError, match="manifest.json: missing"):
         check_backup(tmp_path / "bk")
+
+
+def test_backup_then_restore_on_postgresql(request, synth_scene: Path, tmp_path: Path, capsys) -> None:
+    """pg_dump in the snapshot the artifact list is read in, pg_restore into an empty database
+    (and with --force over one that holds data); where the tests have a PostgreSQL server."""
+    import shutil
+
+    from tests.server.conftest import database_url
+
+    if shutil.which("pg_dump") is None or shutil.which("pg_restore") is None:
+        pytest.skip("PostgreSQL's client programs pg_dump and pg_restore are not installed")
+    source_db, target_db = database_url(request, "postgresql"), database_url(request, "postgresql")
+    source = tmp_path / "source"
+    live = start_server(test_settings(source, database_url=source_db, embedded_worker=False))
+    try:
+        with live.client() as c:
+            c.upload_scene_folder(synth_scene, scene="room")
+            before = {f.name: (f.id, f.pose) for f in c.frames("room")}
+            code, out, err = csa(["backup", str(tmp_path / "bk"), "--data-dir", str(source), "--database-url", source_db], capsys)
+            assert code == 0, err
+            assert out.startswith("backed up the postgresql database and ")
+    finally:
+        live.stop()
+    assert check_backup(tmp_path / "bk")["database"] == "postgresql"
+
+    target = tmp_path / "target"
+    code, _, err = csa(["restore", str(tmp_path / "bk"), "--data-dir", str(target), "--database-url", target_db], capsys)
+    assert code == 0, err
+    assert stored_files(target) == stored_files(source)
+    restored = start_server(test_settings(target, database_url=target_db, embedded_worker=False))
+    try:
+        with restored.client() as c:
+            assert {f.name: (f.id, f.pose) for f in c.frames("room")} == before
+            c.create_scene("after-restore")
+        assert look(restored.settings).problems == 0
+    finally:
+        restored.stop()
+    # The target holds data now: refused without --force, replaced whole with it.
+    code, _, err = csa(["restore", str(tmp_path / "bk"), "--data-dir", str(target), "--database-url", target_db], capsys)
+    assert code == 1 and "holds a database and artifact files" in err
+    code, _, err = csa(["restore", str(tmp_path / "bk"), "--data-dir", str(target), "--database-url", target_db, "--force"], capsys)
+    assert code == 0, err
+    restored = start_server(test_settings(target, database_url=target_db, embedded_worker=False))
+    try:
+        with restored.client() as c:
+            assert [s.name for s in c.scenes()] == ["room"]
+    finally:
+        restored.stop()
