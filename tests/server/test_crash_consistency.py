@@ -11,6 +11,7 @@ finishes on the next server. Runs on SQLite, and on PostgreSQL where the fixture
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
 import re
@@ -352,3 +353,31 @@ def test_postgresql_restarted_under_traffic_the_service_recovers_by_itself(tmp_p
         if live is not None:
             live.stop()
         databases.close()
+
+
+def test_fault_points_are_off_unless_named_and_a_bad_setting_is_refused_naming_it() -> None:
+    assert faults.active() is None  # the tests run with CSA_FAULT_POINT unset
+    for name in faults.POINTS:
+        faults.point(name)  # off: nothing happens
+    assert faults.parse("job.computed") == faults.Fault("job.computed", 1, "kill")
+    assert faults.parse("artifact.write:3:enospc") == faults.Fault("artifact.write", 3, "enospc")
+    for value, problem in [
+        ("job.compute", "unknown point 'job.compute'"),
+        ("job.computed:0", "COUNT must be a whole number >= 1, got '0'"),
+        ("job.computed:x", "COUNT must be a whole number >= 1, got 'x'"),
+        ("job.computed:1:explode", "ACTION must be one of kill, enospc, got 'explode'"),
+        ("a:1:kill:more", "expected NAME[:COUNT[:ACTION]]"),
+    ]:
+        with pytest.raises(ValueError) as refused:
+            faults.parse(value)
+        assert str(refused.value).startswith(f"CSA_FAULT_POINT={value!r}: ") and problem in str(refused.value)
+    try:
+        faults.configure("frame.blobs_written:2:enospc")
+        faults.point("frame.blobs_written")  # the first hit passes
+        faults.point("job.computed")  # another point: nothing
+        for _ in range(2):  # the second hit and every later one: a full disk stays full
+            with pytest.raises(OSError) as full:
+                faults.point("frame.blobs_written")
+            assert full.value.errno == errno.ENOSPC
+    finally:
+        faults.configure(None)
