@@ -9,7 +9,6 @@ rendered ones. Replay pairs and the pre-training slice join the batches as docs/
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import logging
 import math
@@ -363,7 +362,3 @@ def adapt_one_step(
     notify(on_progress, f"adapted to {scene.name}", 1.0)
     return result
 
-
-def copy_model(model: SegmentationNet) -> SegmentationNet:
-    """A deep copy (weights and BatchNorm statistics) of a network."""
-    return copy.deepcopy(model)

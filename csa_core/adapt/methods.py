@@ -27,8 +27,7 @@ the pre-training slice where there is one), so a difference in R comes from the 
 the memory, not from the optimiser. AdaBN (``AdaptConfig.adabn``, placed by
 ``adabn_placement``) applies to every method by one rule, CoTTA included, so a comparison
 can be made with it on and off: with the ``paper`` placement only a network trained on
-rendered images gets it, so the baselines, which train on camera images, get none. Mapping's own :func:`mapping_adapt` uses
-the segmentation trainer instead, which cannot mix in the pre-training slice.
+rendered images gets it, so the baselines, which train on camera images, get none.
 """
 
 from __future__ import annotations

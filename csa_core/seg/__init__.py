@@ -12,8 +12,8 @@ _EXPORTS = {
     "adabn": ("adapt_batchnorm", "batchnorm_layers", "recompute_batchnorm"),
     "checkpoint": ("ModelCard", "load_checkpoint", "read_model_card", "save_checkpoint"),
     "config": (
-        "ARCH_NAMES", "DEFAULT_ARCH", "PAPER_ADAPT_BATCH_SIZE", "PAPER_ADAPT_LR", "PAPER_ARCH",
-        "AugmentConfig", "PretrainConfig", "TrainConfig",
+        "ARCH_NAMES", "DEFAULT_ARCH", "PAPER_ARCH", "AugmentConfig", "PretrainConfig",
+        "TrainConfig",
     ),
     "dataset": ("SegmentationDataset",),
     "losses": ("IGNORE_INDEX", "nyu40_to_target", "segmentation_loss"),

@@ -7,7 +7,6 @@ Pre-training values are ours, sized for a light network on a 2-core CPU; the pap
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 from csa_core.data.scene import NYU40_FOLDER
 
@@ -22,9 +21,6 @@ ARCH_NAMES = (
 PAPER_ARCH = "deeplabv3_resnet101"
 DEFAULT_ARCH = "lraspp_mobilenet_v3_large"  # ours: 3.2 M parameters, trains on a CPU
 
-# docs/method.md "Reference numbers" (the paper's adaptation setting): segmentation Adam lr 1e-5, batch 4.
-PAPER_ADAPT_LR = 1e-5
-PAPER_ADAPT_BATCH_SIZE = 4
 # docs/method.md "Reference numbers": images 320x240 (width x height).
 PAPER_SIZE = (320, 240)
 # The paper's pre-training (docs/presets.md "Pre-training presets"): Adam lr decayed linearly
@@ -44,7 +40,7 @@ class TrainConfig:
     """Optimiser, schedule and loop settings.
 
     The defaults are ours, for pre-training a light network from scratch on a CPU; the
-    paper's adaptation values are :meth:`paper_adaptation`. ``lr`` is Adam's initial rate,
+    paper's adaptation values are in :class:`csa_core.adapt.config.SegBudget`. ``lr`` is Adam's initial rate,
     decayed per step to ``final_lr`` (0 unless set) by ``schedule`` (``poly``:
     (1 - t)^poly_power, ``linear``, ``cosine``; ``constant`` keeps ``lr``). Every ``val_every`` epochs (and after the last) the model is scored.
     Before each validation the BatchNorm running statistics are recomputed on up to
@@ -65,11 +61,6 @@ class TrainConfig:
     val_every: int = 1
     device: str | None = None
     progress: bool = True
-
-    @classmethod
-    def paper_adaptation(cls, **overrides: Any) -> TrainConfig:
-        """The paper's fine-tuning setting (Adam lr 1e-5, batch 4, see docs/method.md "Reference numbers")."""
-        return cls(**{"lr": PAPER_ADAPT_LR, "batch_size": PAPER_ADAPT_BATCH_SIZE, **overrides})
 
     def __post_init__(self) -> None:
         if self.schedule not in SCHEDULES:

@@ -100,9 +100,7 @@ def test_same_seed_same_run_and_no_validation_keeps_last(scenes):
     assert ra.images_seen == 12  # 12 training frames, batches of 4
 
 
-def test_paper_adaptation_settings_and_validation():
-    cfg = TrainConfig.paper_adaptation(epochs=3)
-    assert (cfg.lr, cfg.batch_size, cfg.epochs) == (1e-5, 4, 3)
+def test_settings_validation():
     with pytest.raises(ValueError, match="schedule"):
         TrainConfig(schedule="step")
     with pytest.raises(ValueError, match="lr"):

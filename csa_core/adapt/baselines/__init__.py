@@ -10,10 +10,9 @@ from csa_core.lazy_exports import lazy_exports
 _EXPORTS = {
     "voxel_map": ("PAPER_VOXEL_SIZE", "VoxelMapConfig", "VoxelSemanticMap"),
     "mapping": (
-        "MAPPING_FOLDER", "MappingFootprint", "MappingMemory", "MappingStep", "build_voxel_map",
-        "finetune_on_map_labels", "mapping_adapt", "mapping_memory", "mapping_pseudo_labels",
-        "mapping_replay_buffer", "render_map_labels",
+        "MAPPING_FOLDER", "MappingFootprint", "MappingMemory", "build_voxel_map",
+        "mapping_memory", "mapping_pseudo_labels", "mapping_replay_buffer", "render_map_labels",
     ),
-    "cotta": ("CoTTA", "CoTTAConfig", "CoTTAFootprint", "cotta_adapt", "module_bytes"),
+    "cotta": ("CoTTA", "CoTTAConfig", "CoTTAFootprint", "module_bytes"),
 }  # fmt: skip
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -242,15 +242,3 @@ class CoTTA:
             )
         return CoTTAFootprint(module_bytes(self.teacher), module_bytes(self.source), moments)
 
-
-def cotta_adapt(
-    model: nn.Module,
-    frames: Iterable[np.ndarray | Frame],
-    config: CoTTAConfig | None = None,
-) -> nn.Module:
-    """One online CoTTA pass over ``frames``; returns the teacher, the network CoTTA reports
-    (``model`` itself becomes the student). For several scenes in a row keep one
-    :class:`CoTTA` and call :meth:`CoTTA.adapt` per scene instead."""
-    cotta = CoTTA(model, config)
-    cotta.adapt(frames)
-    return cotta.teacher

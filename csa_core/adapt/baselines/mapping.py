@@ -8,7 +8,6 @@ the Mapping row of the memory-footprint table (docs/method.md, "Protocols and me
 
 from __future__ import annotations
 
-import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -22,14 +21,8 @@ from csa_core.errors import CSAInputError
 
 if TYPE_CHECKING:
     import torch
-    from torch import Tensor
-    from torch.utils.data import Dataset, Sampler
 
     from csa_core.adapt.replay import ReplayBuffer
-    from csa_core.seg.config import TrainConfig
-    from csa_core.seg.dataset import PairTransform, SegmentationDataset
-    from csa_core.seg.models import SegmentationNet
-    from csa_core.seg.train import TrainResult
 
 MAPPING_FOLDER = "label-mapping"  # label folder name for the map's pseudo-labels
 
@@ -167,13 +160,6 @@ class MappingMemory:
             lab = sum(_encoded_bytes(x, ".png") for x in self.labels)
         return MappingFootprint(self.map_bytes, img, lab, len(self.images))
 
-    def dataset(self, transform: PairTransform | None = None) -> SegmentationDataset:
-        """The stored pairs as a segmentation dataset (for replay in later steps)."""
-        from csa_core.seg.dataset import SegmentationDataset
-
-        names = [f"{self.scene}/{n}" for n in self.names] if self.names else None
-        return SegmentationDataset(self.images, self.labels, transform=transform, names=names)
-
 
 def mapping_replay_buffer(memories: Sequence[MappingMemory], size: int) -> ReplayBuffer:
     """A replay buffer of ``size`` stored pairs from earlier scenes, split and picked by the
@@ -207,93 +193,3 @@ def mapping_memory(
         map_bytes=voxel_map.nbytes if voxel_map is not None else 0,
     )
 
-
-def finetune_on_map_labels(
-    model: SegmentationNet,
-    scene: Scene,
-    pseudo_labels: Mapping[str, np.ndarray],
-    train: TrainConfig | None = None,
-    replay: ReplayBuffer | None = None,
-    transform: PairTransform | None = None,
-    val_sets: Mapping[str, SegmentationDataset] | None = None,
-    batch_sampler: Sampler[list[int]] | None = None,
-) -> TrainResult:
-    """GI+ML: fine-tune ``model`` on the scene's camera images with the map's labels, plus the
-    stored pairs of ``replay`` (earlier scenes, see :func:`mapping_replay_buffer`), with the
-    segmentation training loop.
-
-    ``train`` defaults to the paper's adaptation setting (Adam lr 1e-5, batch 4). The current
-    scene's pairs come first in the concatenated dataset, so a ``batch_sampler`` can tell
-    them from the replayed ones.
-    """
-    from torch.utils.data import ConcatDataset
-
-    from csa_core.seg.config import TrainConfig
-    from csa_core.seg.dataset import SegmentationDataset
-    from csa_core.seg.train import train_segmentation
-
-    current = mapping_memory(scene, pseudo_labels).dataset(transform)
-    parts: list[Dataset[tuple[Tensor, Tensor]]] = [current]
-    if replay is not None and len(replay):
-        parts.append(SegmentationDataset(replay.images, replay.labels, transform, replay.names))
-    dataset = parts[0] if len(parts) == 1 else ConcatDataset(parts)
-    return train_segmentation(
-        model,
-        dataset,
-        train or TrainConfig.paper_adaptation(),
-        val_sets=val_sets,
-        batch_sampler=batch_sampler,
-    )
-
-
-@dataclass
-class MappingStep:
-    """One Mapping adaptation step: its pseudo-labels, map, replay memory and timings."""
-
-    pseudo_labels: dict[str, np.ndarray]
-    memory: MappingMemory
-    num_voxels: int
-    map_bytes: int
-    fusion_seconds: float
-    train_result: TrainResult | None = None
-
-
-def mapping_adapt(
-    model: SegmentationNet,
-    scene: Scene,
-    train: TrainConfig | None = None,
-    voxel: VoxelMapConfig | None = None,
-    replay: ReplayBuffer | None = None,
-    predictions: Mapping[str, np.ndarray] | None = None,
-    transform: PairTransform | None = None,
-) -> MappingStep:
-    """One step of the Mapping baseline on ``scene`` (one-step, or one step of a sequence).
-
-    Predicts the training views with ``model`` (unless ``predictions`` are given), fuses
-    them, reads pseudo-labels back, and fine-tunes ``model`` in place on GI+ML plus the
-    ``replay`` buffer of earlier scenes' stored pairs. Keep the returned ``memory`` for later steps.
-    """
-    from csa_core.device import resolve_device
-    from csa_core.seg.config import TrainConfig
-
-    names = [f.name for f in scene.train_frames]
-    device = (train or TrainConfig.paper_adaptation()).device  # predict and map where it trains
-    if predictions is None:
-        from csa_core.seg.predict import predict_scene
-
-        predictions = predict_scene(model, scene, split="train", device=device)
-    else:
-        predictions = {n: predictions[n] for n in names if n in predictions}
-    t0 = time.perf_counter()
-    voxel_map = build_voxel_map(scene, predictions, voxel, resolve_device(device))
-    pseudo = render_map_labels(voxel_map, scene, list(predictions))
-    seconds = time.perf_counter() - t0
-    result = finetune_on_map_labels(model, scene, pseudo, train, replay, transform)
-    return MappingStep(
-        pseudo_labels=pseudo,
-        memory=mapping_memory(scene, pseudo, voxel_map),
-        num_voxels=voxel_map.num_voxels,
-        map_bytes=voxel_map.nbytes,
-        fusion_seconds=seconds,
-        train_result=result,
-    )

@@ -22,11 +22,6 @@ _DEFAULT_LOOK = Look(((150, 150, 150),))
 _MORTAR = np.array([0.42, 0.40, 0.37])
 
 
-def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
-    """0..255 sRGB-like colours to linear reflectance (gamma 2.2)."""
-    return (np.asarray(rgb, dtype=np.float64) / 255.0) ** 2.2
-
-
 def find_look(family: RoomFamily, label: str, role: str) -> Look:
     """The family's look for a part: ``label.role``, then ``*.role``, then ``label``."""
     for key in (f"{label}.{role}", f"*.{role}", label):

@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from csa_core.adapt.baselines.cotta import CoTTA, CoTTAConfig, cotta_adapt, module_bytes
+from csa_core.adapt.baselines.cotta import CoTTA, CoTTAConfig, module_bytes
 
 C = 40
 
@@ -186,13 +186,27 @@ def test_cotta_on_a_segmentation_network() -> None:
     assert fp.extra_copies_bytes == 2 * module_bytes(model)
 
 
-def test_cotta_adapt_returns_the_teacher(toy: ToyNet) -> None:
-    before = [p.clone() for p in toy.parameters()]
-    teacher = cotta_adapt(toy, [image(0), image(1)], CoTTAConfig(lr=1e-3, scales=(1.0,)))
-    assert teacher is not toy
-    assert any(not torch.equal(a, b) for a, b in zip(before, toy.parameters(), strict=True))
-    assert any(not torch.equal(a, b) for a, b in zip(before, teacher.parameters(), strict=True))
+def test_the_continual_step_trains_the_student_and_reports_the_teacher() -> None:
+    """CoTTA as a method of the continual step: the run's network is the student, the
+    reported one the teacher, a separate network; both moved, one online step per view."""
+    from csa_core.adapt.config import preset
+    from csa_core.adapt.methods import CoTTAMethod
+    from csa_core.adapt.step import ContinualState, continual_step
+    from csa_core.data.synth import generate_scene
+    from csa_core.seg.models import build_model
 
+    torch.manual_seed(0)
+    model = build_model("lraspp_mobilenet_v3_large")
+    before = [p.detach().clone() for p in model.parameters()]
+    config = preset("tiny")
+    config.seg.device = "cpu"
+    scene = generate_scene("office", 0, 4, (32, 24))
+    state = ContinualState(CoTTAMethod(config, CoTTAConfig(lr=1e-3, scales=(1.0,), flip=False)))
+    record = continual_step(state, model, scene)
+    teacher = state.method.reported(model)
+    assert teacher is not model and record["online_steps"] == len(scene.train_frames)
+    assert any(not torch.equal(a, b) for a, b in zip(before, model.parameters(), strict=True))
+    assert any(not torch.equal(a, b) for a, b in zip(before, teacher.parameters(), strict=True))
 
 def test_cotta_continues_online_across_scenes(toy: ToyNet) -> None:
     cotta = CoTTA(toy, CoTTAConfig(lr=1e-3, scales=(1.0,), flip=False))

@@ -8,7 +8,6 @@ import pytest
 from csa_core.adapt.baselines import voxel_map as voxel_map_module
 from csa_core.adapt.baselines.mapping import (
     build_voxel_map,
-    mapping_adapt,
     mapping_memory,
     mapping_pseudo_labels,
     mapping_replay_buffer,
@@ -351,30 +350,40 @@ def test_memory_footprint_and_replay_split(office: Scene) -> None:
     assert buffer.names[:3] == [f"{office.name}/{n}" for n in ("0", "6", "12")]
 
 
-def test_mapping_step_end_to_end(office: Scene) -> None:
+def test_continual_mapping_step_end_to_end(office: Scene, monkeypatch) -> None:
+    """The continual step's Mapping method, here on ground-truth predictions: map labels read
+    back at the training views, the scene's pairs stored, an earlier scene's pairs replayed,
+    the network trained."""
     import torch
 
-    from csa_core.seg.config import TrainConfig
+    from csa_core.adapt import methods
+    from csa_core.adapt.config import preset
+    from csa_core.adapt.step import ContinualState, continual_step
     from csa_core.seg.models import build_model
 
+    gt = {f.name: f.labels[NYU40_FOLDER] for f in office.frames}
+    monkeypatch.setattr(
+        methods, "predict_frames", lambda model, frames, device=None: {f.name: gt[f.name] for f in frames}
+    )
     torch.manual_seed(0)
     model = build_model("lraspp_mobilenet_v3_large")
     before = [p.detach().clone() for p in model.parameters()]
-    gt = {f.name: f.labels[NYU40_FOLDER] for f in office.frames}
+    config = preset("tiny")
+    config.seg.device, config.seg.epochs, config.replay.buffer_size = "cpu", 1, 4
+    state = ContinualState.start(config, "mapping")
     earlier = mapping_memory(office, {n: gt[n] for n in ("0", "1", "2")})
     earlier.scene = "earlier"
-    step = mapping_adapt(
-        model,
-        office,
-        train=TrainConfig(epochs=1, batch_size=4, lr=1e-3, precise_bn_images=0, progress=False),
-        replay=mapping_replay_buffer([earlier], size=4),
-        predictions=gt,
-    )
-    assert set(step.pseudo_labels) == {f.name for f in office.train_frames}
+    state.method.memories = [earlier]
+    record = continual_step(state, model, office)
+    assert [m.scene for m in state.method.memories] == ["earlier", office.name]
+    memory = state.method.memories[-1]
+    labels = dict(zip(memory.names, memory.labels, strict=True))
+    assert set(labels) == {f.name for f in office.train_frames}
     # Ray cast from the training views (measured 0.984 on this room of boxes, 0.965 since it
     # has thin parts that a 5 cm TSDF loses: see the test of ground-truth fusion above)
-    assert agreement(step.pseudo_labels, office) > 0.955
-    assert len(step.memory) == office.num_train and step.map_bytes > 0
-    # 13 current + 4 replayed pairs in batches of 4, the incomplete last batch dropped.
-    assert step.train_result is not None and step.train_result.images_seen == 16
+    assert agreement(labels, office) > 0.955
+    assert len(memory) == office.num_train and memory.map_bytes > 0
+    assert record["num_voxels"] > 0 and record["stored_bytes"] == memory.footprint().total_bytes
+    assert record["replay"] == {"earlier": 4}
     assert any(not torch.equal(a, b) for a, b in zip(before, model.parameters(), strict=True))
+
