@@ -17,7 +17,8 @@ _EXPORTS = {
     "memory_bank": ("MemoryBank",),
     "pseudo_labels": ("PseudoLabels", "make_pseudo_labels"),
     "replay": ("MixedBatchSampler", "PretrainReplay", "ReplayBuffer", "split_buffer"),
-    "step": ("ContinualState", "continual_step", "one_step"),
+    "methods": ("ContinualState",),
+    "step": ("continual_step", "one_step"),
     "bn_memory": ("BatchNormMemory",),
 }
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -24,8 +24,8 @@ import numpy as np
 
 from csa_core.adapt.config import AdaptConfig
 from csa_core.adapt.memory_bank import MemoryBank
-from csa_core.adapt.methods import check_method
-from csa_core.adapt.step import ContinualState, continual_step
+from csa_core.adapt.methods import ContinualState, check_method
+from csa_core.adapt.step import continual_step
 from csa_core.atomic_io import write_text_atomic
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.errors import CSAInputError

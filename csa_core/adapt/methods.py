@@ -4,7 +4,7 @@
 R and b, the continual metrics, ``results.json``. :func:`csa_core.adapt.step.continual_step`
 owns a step: it calls the method, then pools BatchNorm statistics; what the run keeps between
 steps (the NeRF memory bank, the BatchNorm records, the pre-training slice) is its
-:class:`~csa_core.adapt.step.ContinualState`. A method owns what happens inside one step and
+:class:`ContinualState`. A method owns what happens inside one step and
 the memory only it keeps, so every method is scored by the same code on the same views:
 
 - ``ours``: NeRF pseudo-labels in ``config.mode`` (GI+NL, NI+NL or joint), replay rendered
@@ -36,7 +36,8 @@ import copy
 import dataclasses
 import time
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, ClassVar
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 from torch import nn
 
@@ -49,6 +50,7 @@ from csa_core.adapt.baselines.mapping import (
     render_map_labels,
 )
 from csa_core.adapt.baselines.voxel_map import VoxelMapConfig
+from csa_core.adapt.bn_memory import BatchNormMemory
 from csa_core.adapt.collapse import label_entropy
 from csa_core.adapt.config import MODES, AdaptConfig
 from csa_core.adapt.finetune import (
@@ -57,15 +59,14 @@ from csa_core.adapt.finetune import (
     apply_adabn,
     finetune_on_labels,
 )
+from csa_core.adapt.memory_bank import NerfMemory
 from csa_core.adapt.pseudo_labels import label_miou, predict_frames
 from csa_core.adapt.replay import PretrainReplay, ReplayBuffer
 from csa_core.data.scene import NYU40_FOLDER, Scene
 from csa_core.errors import CSAInputError
+from csa_core.overrides import apply_overrides
 from csa_core.progress import ProgressCallback, notify
 from csa_core.seg.models import SegmentationNet
-
-if TYPE_CHECKING:
-    from csa_core.adapt.step import ContinualState
 
 # What a step's record says when our method banked no NeRF, per guard decision.
 NOT_BANKED = {
@@ -145,14 +146,14 @@ class ContinualMethod:
             )
 
 
-class Ours(ContinualMethod):
-    """NeRF pseudo-labels in ``config.mode`` with replay from the run's NeRF memory bank
-    (``state.bank``): the earlier scenes' NeRFs as stored, i.e. read back from their
-    checkpoints. The scene's NeRF joins the bank only when the collapse guard accepted its
-    labels: after a ``skip`` or a ``fallback_predictions`` nothing is banked (the record's
-    ``nerf_banked`` is false and ``not_banked`` says why), so later steps replay nothing
-    of the scene. A joint training the guard stopped banks the NeRF as restored to its
-    last accepted state."""
+class CSAMethod(ContinualMethod):
+    """Continual semantic adaptation, the method ``ours``: NeRF pseudo-labels in
+    ``config.mode`` with replay from the run's NeRF memory bank (``state.bank``): the earlier
+    scenes' NeRFs as stored, i.e. read back from their checkpoints. The scene's NeRF joins
+    the bank only when the collapse guard accepted its labels: after a ``skip`` or a
+    ``fallback_predictions`` nothing is banked (the record's ``nerf_banked`` is false and
+    ``not_banked`` says why), so later steps replay nothing of the scene. A joint training
+    the guard stopped banks the NeRF as restored to its last accepted state."""
 
     name = "ours"
 
@@ -221,12 +222,10 @@ def method_config(name: str, config: AdaptConfig) -> AdaptConfig:
     items = OURS_VARIANTS.get(name)
     if not items:
         return config
-    from csa_core.overrides import apply_overrides
-
     return apply_overrides(copy.deepcopy(config), items, flag=f"method {name}")
 
 
-class OursPretrainReplay(Ours):
+class CSAPretrainReplay(CSAMethod):
     """The paper's "Ours (I_pre replay only)" (Tab. 3): ours without the replay buffer; the
     network still trains with the pre-training slice. It banks its NeRFs as ours does (the
     service renders from them), though no later step of it replays them."""
@@ -237,7 +236,7 @@ class OursPretrainReplay(Ours):
         super().__init__(method_config(self.name, config))
 
 
-class OursNovelViews(Ours):
+class CSANovelViews(CSAMethod):
     """The paper's "Ours (novel viewpoints)" (Tab. 3): ours with the replay buffer rendered at
     novel viewpoints, midway between consecutive training poses (docs/method.md "Remember")."""
 
@@ -458,8 +457,67 @@ def pretrain_context(
 
 _CLASSES: dict[str, type[ContinualMethod]] = {
     cls.name: cls
-    for cls in (Ours, Mapping, CoTTAMethod, SelfTraining, OursPretrainReplay, OursNovelViews)
+    for cls in (CSAMethod, Mapping, CoTTAMethod, SelfTraining, CSAPretrainReplay, CSANovelViews)
 }
+
+
+@dataclass
+class ContinualState:
+    """What a continual run keeps between steps.
+
+    ``method``: the method with its own memory (:mod:`csa_core.adapt.methods`; it holds the
+    run's :class:`~csa_core.adapt.config.AdaptConfig`). ``bank``: the NeRF memory bank of our
+    method (any :class:`~csa_core.adapt.memory_bank.NerfMemory`; unused by the baselines).
+    ``batchnorm``: the per-scene BatchNorm statistics, ``None`` when the run does not pool
+    them. ``pretrain``: the replayed slice of the pre-training data; ``prior_entropy``: the
+    class entropy of the pre-training labels, the collapse guard's fallback reference.
+    """
+
+    method: ContinualMethod
+    bank: NerfMemory | None = None
+    batchnorm: BatchNormMemory | None = None
+    pretrain: PretrainReplay | None = None
+    prior_entropy: float | None = None
+
+    @property
+    def config(self) -> AdaptConfig:
+        return self.method.config
+
+    @classmethod
+    def start(
+        cls,
+        config: AdaptConfig,
+        method: str = "ours",
+        *,
+        bank: NerfMemory | None = None,
+        pretrain_scenes: Sequence[Scene] = (),
+        batchnorm: BatchNormMemory | None = None,
+    ) -> ContinualState:
+        """The state of a run with ``method`` (one of :data:`~csa_core.adapt.methods.METHODS`)
+        about to take its next step: ``bank`` holds the earlier scenes' NeRFs (our method
+        needs one), ``batchnorm`` their BatchNorm records (a fresh memory when ``None``; used
+        only when :func:`pools_batchnorm`), ``pretrain_scenes`` give the pre-training slice
+        and the prior entropy."""
+        runner = make_method(method, config)
+        pretrain, prior = pretrain_context(pretrain_scenes, config)
+        memory = None
+        if pools_batchnorm(config):
+            memory = batchnorm if batchnorm is not None else BatchNormMemory()
+        return cls(runner, bank, memory, pretrain, prior)
+
+    def memory_bytes(self) -> dict[str, Any]:
+        """What the method stores after the steps so far (``method_total`` counts in the
+        comparison of methods), and the BatchNorm records when the run pools them."""
+        out = self.method.memory_bytes(self)
+        if self.batchnorm is not None:
+            out["batchnorm_statistics"] = self.batchnorm.nbytes()
+        return out
+
+
+def pools_batchnorm(config: AdaptConfig) -> bool:
+    """Whether a run keeps per-scene BatchNorm statistics and runs with their mixture: with
+    AdaBN (which every method's step ends with) and ``config.pool_batchnorm``."""
+    return bool(config.adabn and config.pool_batchnorm)
 
 
 def check_method(name: str, allowed: Sequence[str] = METHODS, field: str = "method") -> str:

@@ -2,7 +2,7 @@
 
 Every caller adapts through :func:`continual_step`: ``csa adapt`` and ``csa experiment``
 (through :func:`csa_core.adapt.continual.run_continual`, which also scores R) and the
-service's adapt job, which builds a :class:`ContinualState` from its stores, calls the step
+service's adapt job, which builds a :class:`~csa_core.adapt.methods.ContinualState` from its stores, calls the step
 once and registers what the state now holds. A step of our method renders the replay buffer
 from the memory bank (at most ``config.replay.max_render_samples`` samples per ray), adapts
 with it and the pre-training slice, banks the scene's NeRF, and (with ``config.adabn`` and
@@ -17,87 +17,19 @@ from __future__ import annotations
 
 import copy
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from torch import nn
 
-from csa_core.adapt.bn_memory import BatchNormMemory
 from csa_core.adapt.config import MODES, AdaptConfig
 from csa_core.adapt.finetune import evaluate
-from csa_core.adapt.memory_bank import MemoryBank, NerfMemory
-from csa_core.adapt.methods import (
-    METHODS,
-    ContinualMethod,
-    check_method,
-    make_method,
-    pretrain_context,
-)
+from csa_core.adapt.memory_bank import MemoryBank
+from csa_core.adapt.methods import METHODS, ContinualState, check_method, make_method
 from csa_core.adapt.replay import PretrainReplay
 from csa_core.data.scene import Scene
 from csa_core.progress import ProgressCallback
 from csa_core.seg.models import SegmentationNet
-
-
-@dataclass
-class ContinualState:
-    """What a continual run keeps between steps.
-
-    ``method``: the method with its own memory (:mod:`csa_core.adapt.methods`; it holds the
-    run's :class:`~csa_core.adapt.config.AdaptConfig`). ``bank``: the NeRF memory bank of our
-    method (any :class:`~csa_core.adapt.memory_bank.NerfMemory`; unused by the baselines).
-    ``batchnorm``: the per-scene BatchNorm statistics, ``None`` when the run does not pool
-    them. ``pretrain``: the replayed slice of the pre-training data; ``prior_entropy``: the
-    class entropy of the pre-training labels, the collapse guard's fallback reference.
-    """
-
-    method: ContinualMethod
-    bank: NerfMemory | None = None
-    batchnorm: BatchNormMemory | None = None
-    pretrain: PretrainReplay | None = None
-    prior_entropy: float | None = None
-
-    @property
-    def config(self) -> AdaptConfig:
-        return self.method.config
-
-    @classmethod
-    def start(
-        cls,
-        config: AdaptConfig,
-        method: str = "ours",
-        *,
-        bank: NerfMemory | None = None,
-        pretrain_scenes: Sequence[Scene] = (),
-        batchnorm: BatchNormMemory | None = None,
-    ) -> ContinualState:
-        """The state of a run with ``method`` (one of :data:`~csa_core.adapt.methods.METHODS`)
-        about to take its next step: ``bank`` holds the earlier scenes' NeRFs (our method
-        needs one), ``batchnorm`` their BatchNorm records (a fresh memory when ``None``; used
-        only when :func:`pools_batchnorm`), ``pretrain_scenes`` give the pre-training slice
-        and the prior entropy."""
-        runner = make_method(method, config)
-        pretrain, prior = pretrain_context(pretrain_scenes, config)
-        memory = None
-        if pools_batchnorm(config):
-            memory = batchnorm if batchnorm is not None else BatchNormMemory()
-        return cls(runner, bank, memory, pretrain, prior)
-
-    def memory_bytes(self) -> dict[str, Any]:
-        """What the method stores after the steps so far (``method_total`` counts in the
-        comparison of methods), and the BatchNorm records when the run pools them."""
-        out = self.method.memory_bytes(self)
-        if self.batchnorm is not None:
-            out["batchnorm_statistics"] = self.batchnorm.nbytes()
-        return out
-
-
-def pools_batchnorm(config: AdaptConfig) -> bool:
-    """Whether a run keeps per-scene BatchNorm statistics and runs with their mixture: with
-    AdaBN (which every method's step ends with) and ``config.pool_batchnorm``."""
-    return bool(config.adabn and config.pool_batchnorm)
 
 
 def continual_step(
@@ -116,7 +48,7 @@ def continual_step(
     statistics are recorded for ``scene`` (not after a skip) and the reported network (and
     ``model``, when that is another one: CoTTA's student) run with the mixture of all records.
     The record has the method's fields plus ``batchnorm_pooled`` (the scenes in the mixture,
-    ``None`` without pooling) and ``memory_bytes`` (:meth:`ContinualState.memory_bytes`).
+    ``None`` without pooling) and ``memory_bytes`` (:meth:`~csa_core.adapt.methods.ContinualState.memory_bytes`).
     ``on_progress`` hears the adaptation (:mod:`csa_core.progress`).
     """
     record = state.method.step(state, model, scene, on_progress)

@@ -11,7 +11,8 @@ import torch
 from csa_core.adapt.baselines.cotta import CoTTA, module_bytes
 from csa_core.adapt.continual import run_continual
 from csa_core.adapt.finetune import apply_adabn
-from csa_core.adapt.step import ContinualState, continual_step
+from csa_core.adapt.methods import ContinualState
+from csa_core.adapt.step import continual_step
 from csa_core.errors import CSAInputError
 from csa_core.eval.continual import continual_metrics
 from csa_core.seg.adabn import batchnorm_layers

@@ -11,8 +11,9 @@ import torch
 
 import csa_core.adapt.finetune as finetune
 from csa_core.adapt.memory_bank import MemoryBank
+from csa_core.adapt.methods import ContinualState
 from csa_core.adapt.pseudo_labels import label_miou, render_pairs
-from csa_core.adapt.step import ContinualState, continual_step
+from csa_core.adapt.step import continual_step
 from csa_core.seg.adabn import batchnorm_layers
 from tests.adapt.conftest import tiny_config
 

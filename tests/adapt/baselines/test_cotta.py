@@ -190,8 +190,8 @@ def test_the_continual_step_trains_the_student_and_reports_the_teacher() -> None
     """CoTTA as a method of the continual step: the run's network is the student, the
     reported one the teacher, a separate network; both moved, one online step per view."""
     from csa_core.adapt.config import preset
-    from csa_core.adapt.methods import CoTTAMethod
-    from csa_core.adapt.step import ContinualState, continual_step
+    from csa_core.adapt.methods import ContinualState, CoTTAMethod
+    from csa_core.adapt.step import continual_step
     from csa_core.data.synth import generate_scene
     from csa_core.seg.models import build_model
 

@@ -358,7 +358,8 @@ def test_continual_mapping_step_end_to_end(office: Scene, monkeypatch) -> None:
 
     from csa_core.adapt import methods
     from csa_core.adapt.config import preset
-    from csa_core.adapt.step import ContinualState, continual_step
+    from csa_core.adapt.methods import ContinualState
+    from csa_core.adapt.step import continual_step
     from csa_core.seg.models import build_model
 
     gt = {f.name: f.labels[NYU40_FOLDER] for f in office.frames}
