@@ -1,10 +1,12 @@
-"""One-step adaptation to one scene without its labels (docs/method.md "Adapt").
+"""Fine-tuning on pseudo-labels, and the start every mode of a step shares (docs/method.md
+"Adapt"); :func:`csa_core.adapt.modes.adapt_one_step` picks the mode.
 
 Modes: ``gi_nl`` fine-tunes on the camera images with the NeRF's labels, ``ni_nl`` on the
-NeRF's rendered images with its labels, ``joint`` alternates network and NeRF updates
-(:mod:`csa_core.adapt.joint`). Before scoring on camera images the BatchNorm statistics are
-re-estimated on the scene's camera images (AdaBN), which matters most after training on
-rendered ones. Replay pairs and the pre-training slice join the batches as docs/method.md "Remember" says.
+NeRF's rendered images with its labels (:func:`finetune_adapt`), ``joint`` alternates network
+and NeRF updates (:mod:`csa_core.adapt.joint`). Before scoring on camera images the
+BatchNorm statistics are re-estimated on the scene's camera images (AdaBN), which matters
+most after training on rendered ones. Replay pairs and the pre-training slice join the
+batches as docs/method.md "Remember" says.
 """
 
 from __future__ import annotations
@@ -302,7 +304,7 @@ def begin_step(
     return result, pseudo, seconds
 
 
-def adapt_one_step(
+def finetune_adapt(
     model: SegmentationNet,
     scene: Scene,
     config: AdaptConfig,
@@ -312,22 +314,10 @@ def adapt_one_step(
     evaluate_before: bool = True,
     on_progress: ProgressCallback | None = None,
 ) -> OneStepResult:
-    """Adapt ``model`` in place to ``scene`` (its labels are read only to score) with
-    ``config.mode``; returns the scores before and after, pseudo-label quality, the guard's
-    decisions and timings. The fitted NeRF is in ``result.nerf``, for the memory bank when
-    ``result.trained`` (after a ``skip`` the guard rejected its labels; after a
-    ``stop_joint`` it is back in its state before the rejected round).
-
-    ``on_progress(message, fraction)`` (:mod:`csa_core.progress`) hears the NeRF fit's steps,
-    every fine-tuning epoch (every joint round) and the end. What it raises propagates
-    unchanged; ``model`` is then partly trained and should be discarded.
-    """
-    if config.mode == "joint":
-        from csa_core.adapt.joint import joint_adapt
-
-        return joint_adapt(
-            model, scene, config, replay, pretrain, prior_entropy, evaluate_before, on_progress
-        )
+    """The fine-tuning modes' step (``gi_nl``, ``ni_nl``) of
+    :func:`~csa_core.adapt.modes.adapt_one_step`: pseudo-labels from the NeRF fitted on the
+    network's predictions (:func:`begin_step`), then ``config.seg.epochs`` of fine-tuning on
+    them with the replay pairs and the pre-training slice."""
     device = config.seg.device
     result, pseudo, seconds = begin_step(
         model, scene, config, "pseudo_labels", prior_entropy, evaluate_before, on_progress, pretrain

@@ -75,7 +75,7 @@ def joint_adapt(
     on_progress: ProgressCallback | None = None,
 ) -> OneStepResult:
     """Adapt ``model`` in place to ``scene`` by joint training; see the module docstring.
-    ``on_progress`` is :func:`~csa_core.adapt.finetune.adapt_one_step`'s: the pre-fit's NeRF
+    ``on_progress`` is :func:`~csa_core.adapt.modes.adapt_one_step`'s: the pre-fit's NeRF
     steps, then every round or epoch (or every epoch of the fallback fine-tuning), then the end."""
     device = config.seg.device
     result, pseudo, seconds = begin_step(

@@ -55,11 +55,11 @@ from csa_core.adapt.collapse import label_entropy
 from csa_core.adapt.config import MODES, AdaptConfig
 from csa_core.adapt.finetune import (
     adabn_slice,
-    adapt_one_step,
     apply_adabn,
     finetune_on_labels,
 )
 from csa_core.adapt.memory_bank import NerfMemory
+from csa_core.adapt.modes import adapt_one_step
 from csa_core.adapt.pseudo_labels import label_miou, predict_frames
 from csa_core.adapt.replay import PretrainReplay, ReplayBuffer
 from csa_core.data.scene import NYU40_FOLDER, Scene

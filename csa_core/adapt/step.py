@@ -42,7 +42,7 @@ def continual_step(
     state's method, update the state's memories, and return the step's record.
 
     For our method: replay rendered from ``state.bank`` (every scene in it but ``scene``),
-    :func:`~csa_core.adapt.finetune.adapt_one_step` with the replay, the pre-training slice
+    :func:`~csa_core.adapt.modes.adapt_one_step` with the replay, the pre-training slice
     and the prior entropy, the scene's NeRF added to the bank when the guard accepted its
     labels. Then, when the state pools BatchNorm statistics, the reported network's
     statistics are recorded for ``scene`` (not after a skip) and the reported network (and

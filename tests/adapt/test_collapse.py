@@ -19,6 +19,7 @@ from csa_core.adapt.collapse import (
 )
 from csa_core.adapt.config import CollapseConfig
 from csa_core.adapt.methods import pretrain_context
+from csa_core.adapt.modes import adapt_one_step
 from csa_core.adapt.pseudo_labels import make_pseudo_labels, render_pairs
 from csa_core.seg.predict import evaluate_scene, predict_labels
 from tests.adapt.conftest import tiny_config
@@ -153,7 +154,7 @@ def test_guard_keeps_the_network_from_collapsing(mode, pretrained, target_scenes
         config.seg.lr, config.seg.epochs, config.joint.rounds = 2e-3, 6, 6
         config.collapse.enabled = guarded
         model = copy.deepcopy(pretrained)
-        result = finetune.adapt_one_step(model, scene, config, evaluate_before=False)
+        result = adapt_one_step(model, scene, config, evaluate_before=False)
         entropy = label_entropy(predict_labels(model, images))
         return result, entropy, evaluate_scene(model, scene, "all").miou()
 

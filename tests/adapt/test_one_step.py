@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from csa_core.adapt.finetune import adapt_one_step, apply_adabn
+from csa_core.adapt.finetune import apply_adabn
+from csa_core.adapt.modes import adapt_one_step
 from csa_core.adapt.nerf_training import NerfLabelTrainer
 from csa_core.adapt.pseudo_labels import label_miou, make_pseudo_labels, render_pairs
 from csa_core.adapt.replay import PretrainReplay

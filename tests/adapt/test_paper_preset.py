@@ -14,8 +14,9 @@ from torch import nn
 
 import csa_core.adapt.finetune as finetune
 from csa_core.adapt.config import AdaptConfig, paper
-from csa_core.adapt.finetune import SegFinetuner, adapt_one_step, step_nerf_budget, training_pairs
+from csa_core.adapt.finetune import SegFinetuner, step_nerf_budget, training_pairs
 from csa_core.adapt.methods import pretrain_context
+from csa_core.adapt.modes import adapt_one_step
 from csa_core.adapt.nerf_training import NerfLabelTrainer
 from csa_core.adapt.pseudo_labels import nerf_config
 from csa_core.data.scene import Scene

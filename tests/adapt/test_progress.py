@@ -7,7 +7,7 @@ import copy
 
 import pytest
 
-from csa_core.adapt.finetune import adapt_one_step
+from csa_core.adapt.modes import adapt_one_step
 from tests.adapt.conftest import tiny_config
 
 

@@ -12,6 +12,7 @@ import torch
 import csa_core.adapt.finetune as finetune
 from csa_core.adapt.memory_bank import MemoryBank
 from csa_core.adapt.methods import ContinualState
+from csa_core.adapt.modes import adapt_one_step
 from csa_core.adapt.pseudo_labels import label_miou, render_pairs
 from csa_core.adapt.step import continual_step
 from csa_core.seg.adabn import batchnorm_layers
@@ -135,7 +136,7 @@ def test_stop_joint_rolls_back_nerf_and_network_in_place(pretrained, target_scen
     force_decisions(monkeypatch, {"round 1": "stop_joint"})
     model = copy.deepcopy(pretrained)
     config = tiny_config("joint")
-    result = finetune.adapt_one_step(model, target_scenes[1], config, evaluate_before=False)
+    result = adapt_one_step(model, target_scenes[1], config, evaluate_before=False)
     assert [d.action for d in result.decisions] == ["continue", "stop_joint"]
     prefit, trained = seen
     assert not _equal(prefit, trained)  # round 1 did train the NeRF in place ...
@@ -224,14 +225,14 @@ def test_joint_training_on_camera_images_renders_labels_only(pretrained, target_
     scene = target_scenes[0]
     calls = _spy_colour(monkeypatch)
     lean = copy.deepcopy(pretrained)
-    result = finetune.adapt_one_step(lean, scene, config, evaluate_before=False)
+    result = adapt_one_step(lean, scene, config, evaluate_before=False)
     assert calls == [("prefit", False)] + [("round", False)] * config.joint.rounds
     assert [d.action for d in result.decisions] == ["continue"] * (1 + config.joint.rounds)
 
     monkeypatch.undo()
     _spy_colour(monkeypatch, force=True)
     full = copy.deepcopy(pretrained)
-    forced = finetune.adapt_one_step(full, scene, config, evaluate_before=False)
+    forced = adapt_one_step(full, scene, config, evaluate_before=False)
     assert _equal(_state_dict(lean), _state_dict(full))
     assert result.final_label_miou == forced.final_label_miou
     assert result.after == forced.after
@@ -243,7 +244,7 @@ def test_joint_training_on_renders_skips_the_last_rounds_images(pretrained, targ
     config = tiny_config("joint")
     assert config.joint.render_images and config.trains_on_rendered_images
     calls = _spy_colour(monkeypatch)
-    finetune.adapt_one_step(copy.deepcopy(pretrained), target_scenes[0], config, evaluate_before=False)
+    adapt_one_step(copy.deepcopy(pretrained), target_scenes[0], config, evaluate_before=False)
     rounds = config.joint.rounds
     assert calls == [("prefit", True)] + [("round", True)] * (rounds - 1) + [("round", False)]
 
