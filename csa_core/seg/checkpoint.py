@@ -10,14 +10,12 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import torch
-from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 from torch import Tensor
 
@@ -25,9 +23,9 @@ from csa_core.atomic_io import atomic_file
 from csa_core.data.nyu40 import CLASS_NAMES, NUM_CLASSES
 from csa_core.errors import CSAInputError
 from csa_core.seg.models import ARCHS, IMAGENET_MEAN, IMAGENET_STD, SegmentationNet, build_model
+from csa_core.seg.safetensors_io import read_safetensors, read_safetensors_header
 
 FORMAT = "csa-seg-checkpoint/1"
-T = TypeVar("T")
 _HEADER_KEY = "csa"
 # Lists and objects nest at most this deep in a card (ours nest a few levels): a card is read
 # from a file anyone may have written, and JSON nested about as deep as Python's recursion
@@ -179,35 +177,6 @@ def save_checkpoint(
     with atomic_file(path) as tmp:
         save_file(tensors, str(tmp), metadata=metadata)
     return written
-
-
-def _read_safetensors(path: str | Path, read: Callable[[Any], T]) -> tuple[T, dict[str, str]]:
-    """``read(f)`` of the open safetensors file ``f`` and the file's string metadata; a missing
-    or unreadable file raises :class:`CSAInputError` naming it."""
-    path = Path(path)
-    if not path.is_file():
-        raise CSAInputError(path, "checkpoint file not found")
-    try:
-        with safe_open(str(path), framework="pt", device="cpu") as f:
-            return read(f), dict(f.metadata() or {})
-    except (SafetensorError, OSError, RuntimeError, ValueError) as e:
-        raise CSAInputError(path, f"not a readable safetensors file ({e})") from None
-
-
-def read_safetensors(path: str | Path) -> tuple[dict[str, Tensor], dict[str, str]]:
-    """All tensors (on CPU) and the string metadata of a safetensors file; errors name the file."""
-    return _read_safetensors(path, lambda f: {name: f.get_tensor(name) for name in f.keys()})
-
-
-def _layout(f: Any) -> dict[str, tuple[str, tuple[int, ...]]]:
-    views = {name: f.get_slice(name) for name in f.keys()}
-    return {name: (str(v.get_dtype()), tuple(int(n) for n in v.get_shape())) for name, v in views.items()}
-
-
-def read_safetensors_header(path: str | Path) -> tuple[dict[str, tuple[str, tuple[int, ...]]], dict[str, str]]:
-    """Each tensor's (safetensors dtype such as ``F32``, shape) and the string metadata of a
-    safetensors file, from its header alone: no tensor is read."""
-    return _read_safetensors(path, _layout)
 
 
 def read_model_card(path: str | Path) -> ModelCard:

@@ -16,7 +16,9 @@ from torch import Tensor, nn
 from torchvision.models import segmentation as tvseg
 
 from csa_core.data.nyu40 import NUM_CLASSES
+from csa_core.errors import CSAInputError
 from csa_core.seg.config import DEFAULT_ARCH
+from csa_core.seg.safetensors_io import read_safetensors
 
 # ImageNet statistics: what torchvision's backbones expect, so a user's local ImageNet or COCO
 # weights see the inputs they were trained on.
@@ -135,9 +137,6 @@ def load_foreign_weights(model: SegmentationNet, path: str | Path) -> tuple[list
     are skipped. Returns (loaded, skipped) names of the file; loads nothing and raises
     :class:`CSAInputError` when no tensor matches, so a wrong file never passes silently.
     """
-    from csa_core.errors import CSAInputError
-    from csa_core.seg.checkpoint import read_safetensors
-
     tensors, _ = read_safetensors(path)
     target = model.net.state_dict()
     updates: dict[str, Tensor] = {}
