@@ -34,12 +34,19 @@ def _pct(v: float | None) -> str:
 
 def _read_matrix(path: Path, shapes: tuple[tuple[int, int], ...]) -> list[list[float]]:
     try:
-        rows = [[float(x) for x in line.split()] for line in path.read_text().splitlines() if line.strip()]
+        rows = [
+            [float(x) for x in line.split()]
+            for line in path.read_text().splitlines()
+            if line.strip()
+        ]
     except (OSError, ValueError) as e:
         raise CSAError(f"{path}: not a numeric matrix ({e})") from None
     shape = (len(rows), len(rows[0]) if rows else 0)
     if shape not in shapes or any(len(r) != shape[1] for r in rows):
-        raise CSAError(f"{path}: expected a {' or '.join(f'{a}x{b}' for a, b in shapes)} matrix, got {shape[0]}x{shape[1]}")
+        raise CSAError(
+            f"{path}: expected a {' or '.join(f'{a}x{b}' for a, b in shapes)} matrix, got "
+            f"{shape[0]}x{shape[1]}"
+        )
     return rows
 
 
@@ -48,13 +55,27 @@ def _job_table(jobs: list[Job]) -> Table:
     for col in ("id", "kind", "status", "progress", "message", "created"):
         t.add_column(col, max_width=70 if col == "message" else None, overflow="fold")
     for j in jobs:
-        t.add_row(str(j.id), j.kind, j.status, f"{100 * j.progress:.0f}%", j.error or j.message, j.created_at.isoformat(timespec="seconds"))
+        t.add_row(
+            str(j.id),
+            j.kind,
+            j.status,
+            f"{100 * j.progress:.0f}%",
+            j.error or j.message,
+            j.created_at.isoformat(timespec="seconds"),
+        )
     return t
 
 
 def _wait(client: CSAClient, job: Job, timeout: float | None) -> Job:
     """Follow a job with a progress bar until it ends."""
-    with Progress(TextColumn("[bold]job {task.fields[job]}[/] {task.fields[kind]}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(), TextColumn("{task.fields[msg]}"), console=err_console) as bar:
+    with Progress(
+        TextColumn("[bold]job {task.fields[job]}[/] {task.fields[kind]}"),
+        BarColumn(),
+        TextColumn("{task.percentage:>3.0f}%"),
+        TimeElapsedColumn(),
+        TextColumn("{task.fields[msg]}"),
+        console=err_console,
+    ) as bar:
         task = bar.add_task("job", total=1.0, job=job.id, kind=job.kind, msg=job.message)
 
         def update(j: Job) -> None:
@@ -69,17 +90,32 @@ def cmd_health(client: CSAClient, args: argparse.Namespace) -> int:
     if args.json:
         console.print_json(h.model_dump_json())
         return 0 if h.status == "ok" else 1
-    console.print(f"status: {h.status}  version {h.version}  database {h.database}  workers alive {h.workers_alive}", markup=False, highlight=False)
+    console.print(
+        f"status: {h.status}  version {h.version}  database {h.database}  workers alive "
+        f"{h.workers_alive}",
+        markup=False,
+        highlight=False,
+    )
     console.print("capabilities:", markup=False, highlight=False)
     for name, reason in sorted(h.capabilities.items()):
         # The server reports null for an available capability, else why it is not.
-        console.print(f"  {name}: {'available' if reason is None else f'not available ({reason})'}", markup=False, highlight=False)
+        console.print(
+            f"  {name}: {'available' if reason is None else f'not available ({reason})'}",
+            markup=False,
+            highlight=False,
+        )
     return 0 if h.status == "ok" else 1
 
 
 def cmd_upload(client: CSAClient, args: argparse.Namespace) -> int:
-    scene, result = client.upload_scene_folder(args.scene_dir, scene=args.name, replace=args.replace)
-    console.print(f"scene {scene.name} (id {scene.id}): {len(result.added)} added, {len(result.unchanged)} unchanged, {len(result.replaced)} replaced, {len(result.skipped)} skipped; {scene.num_frames} frames stored")
+    scene, result = client.upload_scene_folder(
+        args.scene_dir, scene=args.name, replace=args.replace
+    )
+    console.print(
+        f"scene {scene.name} (id {scene.id}): {len(result.added)} added, "
+        f"{len(result.unchanged)} unchanged, {len(result.replaced)} replaced, "
+        f"{len(result.skipped)} skipped; {scene.num_frames} frames stored"
+    )
     for s in result.skipped:
         console.print(f"  skipped {s.name}: {s.reason}")
     return 0
@@ -98,15 +134,25 @@ def _submit(client: CSAClient, job: Job, args: argparse.Namespace) -> int:
 
 
 def cmd_adapt(client: CSAClient, args: argparse.Namespace) -> int:
-    return _submit(client, client.adapt(args.scene, model=args.model, preset=args.preset, mode=args.mode), args)
+    return _submit(
+        client, client.adapt(args.scene, model=args.model, preset=args.preset, mode=args.mode), args
+    )
 
 
 def cmd_fit_nerf(client: CSAClient, args: argparse.Namespace) -> int:
-    return _submit(client, client.fit_nerf(args.scene, labels=args.labels, preset=args.preset, steps=args.steps, model=args.model), args)
+    return _submit(
+        client,
+        client.fit_nerf(
+            args.scene, labels=args.labels, preset=args.preset, steps=args.steps, model=args.model
+        ),
+        args,
+    )
 
 
 def cmd_evaluate(client: CSAClient, args: argparse.Namespace) -> int:
-    return _submit(client, client.evaluate(model=args.model, scenes=args.scene or None, split=args.split), args)
+    return _submit(
+        client, client.evaluate(model=args.model, scenes=args.scene or None, split=args.split), args
+    )
 
 
 def cmd_pretrain(client: CSAClient, args: argparse.Namespace) -> int:
@@ -128,7 +174,11 @@ def cmd_jobs(client: CSAClient, args: argparse.Namespace) -> int:
         return 0 if job.status == "succeeded" else 1
     if args.log:
         for line in client.job_log(args.job_id, tail=args.tail):
-            console.print(f"{line.time.isoformat(timespec='seconds')} {line.level:7s} {line.message}", markup=False, highlight=False)
+            console.print(
+                f"{line.time.isoformat(timespec='seconds')} {line.level:7s} {line.message}",
+                markup=False,
+                highlight=False,
+            )
         return 0
     console.print_json(client.job(args.job_id).model_dump_json())
     return 0
@@ -137,10 +187,30 @@ def cmd_jobs(client: CSAClient, args: argparse.Namespace) -> int:
 def cmd_models(client: CSAClient, args: argparse.Namespace) -> int:
     if args.ref is None:
         t = Table()
-        for col in ("id", "name", "lineage", "parent", "adapted to", "arch", "MB", "val mIoU", "current"):
+        for col in (
+            "id",
+            "name",
+            "lineage",
+            "parent",
+            "adapted to",
+            "arch",
+            "MB",
+            "val mIoU",
+            "current",
+        ):
             t.add_column(col)
         for m in client.models(lineage=args.lineage):
-            t.add_row(str(m.id), m.name, m.lineage, str(m.parent_id or "-"), m.adapted_scene or "-", m.arch, f"{m.size_bytes / 1e6:.1f}", _pct(m.metrics.get("val_miou")), "*" if m.is_current else "")
+            t.add_row(
+                str(m.id),
+                m.name,
+                m.lineage,
+                str(m.parent_id or "-"),
+                m.adapted_scene or "-",
+                m.arch,
+                f"{m.size_bytes / 1e6:.1f}",
+                _pct(m.metrics.get("val_miou")),
+                "*" if m.is_current else "",
+            )
         console.print(t)
         return 0
     if args.set_current:
@@ -155,8 +225,16 @@ def cmd_models(client: CSAClient, args: argparse.Namespace) -> int:
 
 
 def cmd_register(client: CSAClient, args: argparse.Namespace) -> int:
-    m = client.register_model(args.checkpoint, name=args.name, lineage=args.lineage, make_current=True if args.current else None)
-    console.print(f"registered {m.name} (id {m.id}, lineage {m.lineage}){' as current' if m.is_current else ''}")
+    m = client.register_model(
+        args.checkpoint,
+        name=args.name,
+        lineage=args.lineage,
+        make_current=True if args.current else None,
+    )
+    console.print(
+        f"registered {m.name} (id {m.id}, lineage "
+        f"{m.lineage}){' as current' if m.is_current else ''}"
+    )
     return 0
 
 
@@ -211,7 +289,14 @@ def memory_table(bank: MemoryBank) -> Table:
     for col in ("scene", "nerf", "MB", "preset", "labels", "quality"):
         t.add_column(col, overflow="fold")
     for e in bank.entries:
-        t.add_row(e.scene, str(e.id), f"{e.size_bytes / 1e6:.2f}", e.preset, e.labels_source, "\n".join(quality_lines(e.quality)) or "-")
+        t.add_row(
+            e.scene,
+            str(e.id),
+            f"{e.size_bytes / 1e6:.2f}",
+            e.preset,
+            e.labels_source,
+            "\n".join(quality_lines(e.quality)) or "-",
+        )
     return t
 
 
@@ -241,11 +326,21 @@ def cmd_render(client: CSAClient, args: argparse.Namespace) -> int:
         if args.size is None:
             raise CSAError("--intrinsics needs --size WxH")
         K = _read_matrix(args.intrinsics, ((3, 3), (4, 4)))
-        intrinsics = {"fx": K[0][0], "fy": K[1][1], "cx": K[0][2], "cy": K[1][2], "width": args.size[0], "height": args.size[1]}
+        intrinsics = {
+            "fx": K[0][0],
+            "fy": K[1][1],
+            "cx": K[0][2],
+            "cy": K[1][2],
+            "width": args.size[0],
+            "height": args.size[1],
+        }
     view = client.render(args.scene, pose, intrinsics=intrinsics, channels=args.channels)
     for name, png in view.images.items():
         _write(args.out / f"{name}.png", png)
-    console.print(f"{args.out}: {', '.join(f'{n}.png' for n in view.images)} ({view.width}x{view.height}, NeRF {view.nerf_id})")
+    console.print(
+        f"{args.out}: {', '.join(f'{n}.png' for n in view.images)} ({view.width}x{view.height}, "
+        f"NeRF {view.nerf_id})"
+    )
     return 0
 
 
@@ -258,8 +353,15 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="csa-client", description="Talk to a CSA server (URL and key from --url/--api-key or CSA_URL/CSA_API_KEY).")
-    p.add_argument("--url", default=None, help="server URL (default: $CSA_URL or http://127.0.0.1:8000)")
+    p = argparse.ArgumentParser(
+        prog="csa-client",
+        description=(
+            "Talk to a CSA server (URL and key from --url/--api-key or CSA_URL/CSA_API_KEY)."
+        ),
+    )
+    p.add_argument(
+        "--url", default=None, help="server URL (default: $CSA_URL or http://127.0.0.1:8000)"
+    )
     p.add_argument("--api-key", default=None, help="API key (default: $CSA_API_KEY)")
     p.add_argument("--timeout", type=float, default=30.0, help="seconds per request (default 30)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -268,27 +370,45 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="print the server's answer as JSON")
     s.set_defaults(func=cmd_health)
 
-    s = sub.add_parser("upload", help="upload a scene folder (creates the scene; re-uploading is harmless)")
+    s = sub.add_parser(
+        "upload", help="upload a scene folder (creates the scene; re-uploading is harmless)"
+    )
     s.add_argument("scene_dir", type=Path)
     s.add_argument("--name", default=None, help="scene name (default: the folder name)")
     s.add_argument("--replace", action="store_true", help="overwrite stored frames that differ")
     s.set_defaults(func=cmd_upload)
 
     def waitable(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("--wait", action="store_true", help="follow the job with a progress bar until it ends")
-        sp.add_argument("--timeout-wait", type=float, default=None, help="give up waiting after this many seconds")
+        sp.add_argument(
+            "--wait", action="store_true", help="follow the job with a progress bar until it ends"
+        )
+        sp.add_argument(
+            "--timeout-wait",
+            type=float,
+            default=None,
+            help="give up waiting after this many seconds",
+        )
 
     s = sub.add_parser("adapt", help="adapt the model to a scene (a continual step)")
     s.add_argument("--scene", required=True, help="scene name or id")
     s.add_argument("--model", default=None, help="selects the lineage (default: current model's)")
-    s.add_argument("--preset", default="cpu", help="adaptation preset: paper, cpu or tiny (default cpu)")
-    s.add_argument("--mode", default=None, choices=("joint", "ni_nl", "gi_nl"), help="default: the preset's (joint)")
+    s.add_argument(
+        "--preset", default="cpu", help="adaptation preset: paper, cpu or tiny (default cpu)"
+    )
+    s.add_argument(
+        "--mode",
+        default=None,
+        choices=("joint", "ni_nl", "gi_nl"),
+        help="default: the preset's (joint)",
+    )
     waitable(s)
     s.set_defaults(func=cmd_adapt)
 
     s = sub.add_parser("fit-nerf", help="fit a scene's Semantic-NeRF (memory bank)")
     s.add_argument("--scene", required=True)
-    s.add_argument("--labels", default="predictions", choices=("predictions", "ground_truth", "none"))
+    s.add_argument(
+        "--labels", default="predictions", choices=("predictions", "ground_truth", "none")
+    )
     s.add_argument("--model", default=None)
     s.add_argument("--preset", default="fast", choices=("fast", "reference"))
     s.add_argument("--steps", type=int, default=None)
@@ -297,7 +417,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("evaluate", help="score a model on labelled scenes")
     s.add_argument("--model", default=None)
-    s.add_argument("--scene", action="append", help="scene (repeatable; default: all labelled scenes)")
+    s.add_argument(
+        "--scene", action="append", help="scene (repeatable; default: all labelled scenes)"
+    )
     s.add_argument("--split", default="val", choices=("val", "train", "all"))
     waitable(s)
     s.set_defaults(func=cmd_evaluate)
@@ -312,7 +434,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("jobs", help="list jobs, or show / follow / cancel one")
     s.add_argument("job_id", type=int, nargs="?")
-    s.add_argument("--status", default=None, choices=("queued", "running", "succeeded", "failed", "cancelled"))
+    s.add_argument(
+        "--status", default=None, choices=("queued", "running", "succeeded", "failed", "cancelled")
+    )
     s.add_argument("--limit", type=int, default=30)
     s.add_argument("--log", action="store_true", help="print the job's log")
     s.add_argument("--tail", type=int, default=50)
@@ -351,10 +475,22 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("render", help="render colour, depth and labels from a scene's NeRF")
     s.add_argument("--scene", required=True)
     s.add_argument("--pose", type=Path, required=True, help="4x4 camera-to-world matrix file")
-    s.add_argument("--out", type=Path, default=Path("render"), help="output folder (default: render/)")
-    s.add_argument("--intrinsics", type=Path, default=None, help="3x3/4x4 intrinsics (default: the scene's camera)")
+    s.add_argument(
+        "--out", type=Path, default=Path("render"), help="output folder (default: render/)"
+    )
+    s.add_argument(
+        "--intrinsics",
+        type=Path,
+        default=None,
+        help="3x3/4x4 intrinsics (default: the scene's camera)",
+    )
     s.add_argument("--size", type=_size, default=None, help="WxH for --intrinsics")
-    s.add_argument("--channels", nargs="+", default=["color", "depth", "labels"], choices=("color", "depth", "labels", "labels_color"))
+    s.add_argument(
+        "--channels",
+        nargs="+",
+        default=["color", "depth", "labels"],
+        choices=("color", "depth", "labels", "labels_color"),
+    )
     s.set_defaults(func=cmd_render)
     return p
 

@@ -91,12 +91,15 @@ class CSAClient:
         upload_timeout: float = 600.0,
         transport: httpx.BaseTransport | None = None,
     ):
-        self.base_url = (base_url or os.environ.get("CSA_URL") or "http://127.0.0.1:8000").rstrip("/")
+        url = base_url or os.environ.get("CSA_URL") or "http://127.0.0.1:8000"
+        self.base_url = url.rstrip("/")
         key = api_key if api_key is not None else os.environ.get("CSA_API_KEY")
         headers = {"X-API-Key": key} if key else {}
         self.timeout = httpx.Timeout(timeout, connect=min(timeout, 10.0))
         self.upload_timeout = httpx.Timeout(upload_timeout, connect=min(timeout, 10.0))
-        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=self.timeout, transport=transport)
+        self._http = httpx.Client(
+            base_url=self.base_url, headers=headers, timeout=self.timeout, transport=transport
+        )
 
     def close(self) -> None:
         self._http.close()
@@ -113,9 +116,13 @@ class CSAClient:
         try:
             response = self._http.request(method, path, **kwargs)
         except httpx.TimeoutException as e:
-            raise CSATimeout(f"{method} {self.base_url}{path}: no answer in time ({type(e).__name__})") from None
+            raise CSATimeout(
+                f"{method} {self.base_url}{path}: no answer in time ({type(e).__name__})"
+            ) from None
         except httpx.TransportError as e:
-            raise CSAConnectionError(f"{method} {self.base_url}{path}: cannot reach the server ({e})") from None
+            raise CSAConnectionError(
+                f"{method} {self.base_url}{path}: cannot reach the server ({e})"
+            ) from None
         if response.status_code >= 400:
             raise self._error(response)
         return response
@@ -128,7 +135,11 @@ class CSAClient:
             body = response.json()
             err = body.get("error") if isinstance(body, dict) else None
             if isinstance(err, dict):
-                code, message, field = err.get("code", code), err.get("message", message), err.get("field")
+                code, message, field = (
+                    err.get("code", code),
+                    err.get("message", message),
+                    err.get("field"),
+                )
             elif isinstance(body, dict) and "detail" in body:
                 message = str(body["detail"])
         except (ValueError, json.JSONDecodeError):
@@ -136,7 +147,14 @@ class CSAClient:
             if text:
                 message = text[:300]
         cls = error_for_status(response.status_code)
-        return cls(response.status_code, message, code=code, field=field, method=response.request.method, url=str(response.request.url))
+        return cls(
+            response.status_code,
+            message,
+            code=code,
+            field=field,
+            method=response.request.method,
+            url=str(response.request.url),
+        )
 
     def _json(self, method: str, path: str, model: type[T] | Any, **kwargs: Any) -> T:
         data = self._request(method, path, **kwargs).json()
@@ -144,7 +162,9 @@ class CSAClient:
             return model.model_validate(data)  # type: ignore[return-value]
         return TypeAdapter(model).validate_python(data)
 
-    def _all_pages(self, path: str, model: type[T], params: dict[str, Any] | None = None) -> list[T]:
+    def _all_pages(
+        self, path: str, model: type[T], params: dict[str, Any] | None = None
+    ) -> list[T]:
         """Every row of a paged list route, ``page_size`` rows a request. Each full page's
         ``Link: <...>; rel="next"`` names the cursor (``after``) the next request starts from,
         so rows added or deleted meanwhile neither shift nor repeat the rows read (only the
@@ -157,7 +177,9 @@ class CSAClient:
         after: str | None = None
         while True:
             where = {"after": after} if after is not None else {"offset": len(rows)}
-            response = self._request("GET", path, params={**(params or {}), "limit": self.page_size, **where})
+            response = self._request(
+                "GET", path, params={**(params or {}), "limit": self.page_size, **where}
+            )
             batch = adapter.validate_python(response.json())
             rows += batch
             after = httpx.URL(response.links.get("next", {}).get("url", "")).params.get("after")
@@ -181,7 +203,9 @@ class CSAClient:
         return self._json("GET", f"{API}/scenes/{_ref(ref)}", Scene)
 
     def create_scene(self, name: str, description: str = "") -> Scene:
-        return self._json("POST", f"{API}/scenes", Scene, json={"name": name, "description": description})
+        return self._json(
+            "POST", f"{API}/scenes", Scene, json={"name": name, "description": description}
+        )
 
     def ensure_scene(self, name: str) -> Scene:
         """The scene of this name, created if needed."""
@@ -217,15 +241,28 @@ class CSAClient:
             "depth": _file(depth, "depth.png"),
             "pose": ("pose.txt", _pose_text(pose)),
         }
-        for key, value in (("intrinsics", intrinsics), ("labels", labels), ("depth_intrinsics", depth_intrinsics)):
+        for key, value in (
+            ("intrinsics", intrinsics),
+            ("labels", labels),
+            ("depth_intrinsics", depth_intrinsics),
+        ):
             if value is not None:
                 files[key] = _file(value, f"{key}.txt" if "intrinsics" in key else f"{key}.png")
         data: dict[str, str] = {"replace": "true" if replace else "false"}
         if name is not None:
             data["name"] = name
-        return self._json("POST", f"{API}/scenes/{_ref(scene)}/frames", FrameUpload, files=files, data=data, timeout=self.upload_timeout)
+        return self._json(
+            "POST",
+            f"{API}/scenes/{_ref(scene)}/frames",
+            FrameUpload,
+            files=files,
+            data=data,
+            timeout=self.upload_timeout,
+        )
 
-    def upload_archive(self, scene: str | int, archive: str | os.PathLike[str], replace: bool = False) -> ArchiveUpload:
+    def upload_archive(
+        self, scene: str | int, archive: str | os.PathLike[str], replace: bool = False
+    ) -> ArchiveUpload:
         """Upload a tar or zip of a scene folder (all frames are stored, or none)."""
         with open(archive, "rb") as f:
             return self._json(
@@ -237,7 +274,9 @@ class CSAClient:
                 timeout=self.upload_timeout,
             )
 
-    def upload_scene_folder(self, folder: str | os.PathLike[str], scene: str | None = None, replace: bool = False) -> tuple[Scene, ArchiveUpload]:
+    def upload_scene_folder(
+        self, folder: str | os.PathLike[str], scene: str | None = None, replace: bool = False
+    ) -> tuple[Scene, ArchiveUpload]:
         """Create the scene (named after the folder unless ``scene``) and upload the folder as
         one archive: colour, depth, poses, intrinsics and ``label-nyu40`` ground truth if any."""
         root = Path(folder)
@@ -266,16 +305,41 @@ class CSAClient:
         body = {"kind": kind, "params": {k: v for k, v in params.items() if v is not None}}
         return self._json("POST", f"{API}/jobs", Job, json=body)
 
-    def fit_nerf(self, scene: str | int, labels: str = "predictions", preset: str = "fast", steps: int | None = None, model: str | int | None = None) -> Job:
-        return self.create_job("fit_nerf", scene=scene, labels=labels, preset=preset, steps=steps, model=model)
+    def fit_nerf(
+        self,
+        scene: str | int,
+        labels: str = "predictions",
+        preset: str = "fast",
+        steps: int | None = None,
+        model: str | int | None = None,
+    ) -> Job:
+        return self.create_job(
+            "fit_nerf", scene=scene, labels=labels, preset=preset, steps=steps, model=model
+        )
 
-    def adapt(self, scene: str | int, model: str | int | None = None, preset: str = "cpu", mode: str | None = None) -> Job:
+    def adapt(
+        self,
+        scene: str | int,
+        model: str | int | None = None,
+        preset: str = "cpu",
+        mode: str | None = None,
+    ) -> Job:
         """Queue a continual step: adapt the lineage's newest version (``model`` selects the
         lineage; default the current model's) to ``scene``."""
         return self.create_job("adapt", scene=scene, model=model, preset=preset, mode=mode)
 
-    def evaluate(self, model: str | int | None = None, scenes: Sequence[str | int] | None = None, split: str = "val") -> Job:
-        return self.create_job("evaluate", model=model, scenes=list(scenes) if scenes is not None else None, split=split)
+    def evaluate(
+        self,
+        model: str | int | None = None,
+        scenes: Sequence[str | int] | None = None,
+        split: str = "val",
+    ) -> Job:
+        return self.create_job(
+            "evaluate",
+            model=model,
+            scenes=list(scenes) if scenes is not None else None,
+            split=split,
+        )
 
     def pretrain(self, scenes: Sequence[str | int], **params: Any) -> Job:
         return self.create_job("pretrain", scenes=list(scenes), **params)
@@ -283,12 +347,19 @@ class CSAClient:
     def job(self, job_id: int) -> Job:
         return self._json("GET", f"{API}/jobs/{job_id}", Job)
 
-    def jobs(self, status: str | None = None, kind: str | None = None, limit: int = 100) -> list[Job]:
-        params = {k: v for k, v in {"status": status, "kind": kind, "limit": limit}.items() if v is not None}
+    def jobs(
+        self, status: str | None = None, kind: str | None = None, limit: int = 100
+    ) -> list[Job]:
+        params = {
+            k: v
+            for k, v in {"status": status, "kind": kind, "limit": limit}.items()
+            if v is not None
+        }
         return self._json("GET", f"{API}/jobs", list[Job], params=params)
 
     def job_log(self, job_id: int, tail: int = 100) -> list[LogLine]:
-        return [LogLine.model_validate(x) for x in self._request("GET", f"{API}/jobs/{job_id}/log", params={"tail": tail}).json()["lines"]]
+        response = self._request("GET", f"{API}/jobs/{job_id}/log", params={"tail": tail})
+        return [LogLine.model_validate(x) for x in response.json()["lines"]]
 
     def cancel_job(self, job_id: int) -> Job:
         return self._json("POST", f"{API}/jobs/{job_id}/cancel", Job)
@@ -302,7 +373,11 @@ class CSAClient:
                 raise CSATimeout(f"job {job_id} did not finish within {timeout:g} s")
             read_timeout = 30.0 if remaining is None else min(30.0, remaining)
             try:
-                with self._http.stream("GET", f"{API}/jobs/{job_id}/events", timeout=httpx.Timeout(self.timeout.connect, read=read_timeout)) as response:
+                with self._http.stream(
+                    "GET",
+                    f"{API}/jobs/{job_id}/events",
+                    timeout=httpx.Timeout(self.timeout.connect, read=read_timeout),
+                ) as response:
                     if response.status_code >= 400:
                         response.read()
                         raise self._error(response)
@@ -327,7 +402,13 @@ class CSAClient:
                 yield job
                 return
 
-    def wait_job(self, job_id: int, timeout: float | None = None, on_progress: Callable[[Job], None] | None = None, raise_on_failure: bool = True) -> Job:
+    def wait_job(
+        self,
+        job_id: int,
+        timeout: float | None = None,
+        on_progress: Callable[[Job], None] | None = None,
+        raise_on_failure: bool = True,
+    ) -> Job:
         """Block until the job ends; raises :class:`JobFailed` if it failed or was cancelled."""
         job = self.job(job_id)
         for job in self.watch_job(job_id, timeout=timeout):
@@ -340,7 +421,9 @@ class CSAClient:
     # -- models, memory bank, metrics ----------------------------------------------------
 
     def models(self, lineage: str | None = None) -> list[ModelVersion]:
-        return self._all_pages(f"{API}/models", ModelVersion, params={"lineage": lineage} if lineage else None)
+        return self._all_pages(
+            f"{API}/models", ModelVersion, params={"lineage": lineage} if lineage else None
+        )
 
     def model(self, ref: str | int = "current") -> ModelVersion:
         return self._json("GET", f"{API}/models/{_ref(ref)}", ModelVersion)
@@ -348,21 +431,36 @@ class CSAClient:
     def set_current_model(self, ref: str | int) -> ModelVersion:
         return self._json("POST", f"{API}/models/{_ref(ref)}/current", ModelVersion)
 
-    def register_model(self, checkpoint: str | os.PathLike[str], name: str, lineage: str | None = None, make_current: bool | None = None) -> ModelVersion:
+    def register_model(
+        self,
+        checkpoint: str | os.PathLike[str],
+        name: str,
+        lineage: str | None = None,
+        make_current: bool | None = None,
+    ) -> ModelVersion:
         data = {"name": name}
         if lineage is not None:
             data["lineage"] = lineage
         if make_current is not None:
             data["make_current"] = "true" if make_current else "false"
         with open(checkpoint, "rb") as f:
-            return self._json("POST", f"{API}/models", ModelVersion, files={"checkpoint": (Path(checkpoint).name, f)}, data=data, timeout=self.upload_timeout)
+            return self._json(
+                "POST",
+                f"{API}/models",
+                ModelVersion,
+                files={"checkpoint": (Path(checkpoint).name, f)},
+                data=data,
+                timeout=self.upload_timeout,
+            )
 
     def download_model(self, ref: str | int, dest: str | os.PathLike[str]) -> Path:
         """Save a version's checkpoint to ``dest`` (written to a temporary name, then renamed)."""
         dest = Path(dest)
         tmp = dest.with_name(f".{dest.name}.part")
         try:
-            with self._http.stream("GET", f"{API}/models/{_ref(ref)}/download", timeout=self.upload_timeout) as response:
+            with self._http.stream(
+                "GET", f"{API}/models/{_ref(ref)}/download", timeout=self.upload_timeout
+            ) as response:
                 if response.status_code >= 400:
                     response.read()
                     raise self._error(response)
@@ -391,11 +489,23 @@ class CSAClient:
 
     # -- inference and rendering ---------------------------------------------------------
 
-    def predict(self, image: FileLike, model: str | int | None = None, format: str = "ids") -> Prediction:
+    def predict(
+        self, image: FileLike, model: str | int | None = None, format: str = "ids"
+    ) -> Prediction:
         """Label an image: PNG of uint8 NYU40 ids (``format="ids"``) or the palette picture."""
         data = {"format": format} | ({"model": str(model)} if model is not None else {})
-        response = self._request("POST", f"{API}/predict", files={"image": _file(image, "image.png")}, data=data, timeout=self.upload_timeout)
-        return Prediction(png=response.content, model_id=int(response.headers.get("X-CSA-Model-Id", "0")), model=response.headers.get("X-CSA-Model", ""))
+        response = self._request(
+            "POST",
+            f"{API}/predict",
+            files={"image": _file(image, "image.png")},
+            data=data,
+            timeout=self.upload_timeout,
+        )
+        return Prediction(
+            png=response.content,
+            model_id=int(response.headers.get("X-CSA-Model-Id", "0")),
+            model=response.headers.get("X-CSA-Model", ""),
+        )
 
     def render(
         self,
@@ -405,12 +515,17 @@ class CSAClient:
         channels: Sequence[str] = ("color", "depth", "labels"),
         nerf_id: int | None = None,
     ) -> Rendering:
-        body: dict[str, Any] = {"pose": [[float(v) for v in row] for row in pose], "channels": list(channels)}
+        body: dict[str, Any] = {
+            "pose": [[float(v) for v in row] for row in pose],
+            "channels": list(channels),
+        }
         if intrinsics is not None:
             body["intrinsics"] = intrinsics
         if nerf_id is not None:
             body["nerf_id"] = nerf_id
-        data = self._request("POST", f"{API}/scenes/{_ref(scene)}/render", json=body, timeout=self.upload_timeout).json()
+        data = self._request(
+            "POST", f"{API}/scenes/{_ref(scene)}/render", json=body, timeout=self.upload_timeout
+        ).json()
         return Rendering(
             scene_id=data["scene_id"],
             nerf_id=data["nerf_id"],

@@ -18,7 +18,15 @@ class CSATimeout(CSAError):
 class CSAHTTPError(CSAError):
     """The server answered with an error status; ``code`` and ``field`` come from its JSON body."""
 
-    def __init__(self, status: int, message: str, code: str = "http_error", field: str | None = None, method: str = "", url: str = ""):
+    def __init__(
+        self,
+        status: int,
+        message: str,
+        code: str = "http_error",
+        field: str | None = None,
+        method: str = "",
+        url: str = "",
+    ):
         self.status = status
         self.code = code
         self.field = field
@@ -67,7 +75,15 @@ class JobFailed(CSAError):
         super().__init__(f"job {job.id} ({job.kind}) {job.status}: {job.error or job.message}")
 
 
-_BY_STATUS: dict[int, type[CSAHTTPError]] = {401: AuthError, 403: AuthError, 404: NotFound, 409: Conflict, 413: TooLarge, 422: InvalidInput, 501: NotAvailable}
+_BY_STATUS: dict[int, type[CSAHTTPError]] = {
+    401: AuthError,
+    403: AuthError,
+    404: NotFound,
+    409: Conflict,
+    413: TooLarge,
+    422: InvalidInput,
+    501: NotAvailable,
+}
 
 
 def error_for_status(status: int) -> type[CSAHTTPError]:

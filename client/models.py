@@ -173,7 +173,8 @@ class Prediction:
 
 @dataclass(frozen=True)
 class Rendering:
-    """PNG bytes per channel: color (RGB), depth (uint16 mm), labels (uint8 NYU40 ids), labels_color."""
+    """PNG bytes per channel: color (RGB), depth (uint16 mm), labels (uint8 NYU40 ids),
+    labels_color."""
 
     scene_id: int
     nerf_id: int

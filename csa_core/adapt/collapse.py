@@ -6,8 +6,9 @@ signals catch it without ground truth, each measured against the previous model'
 predictions on the same views: the entropy of the labels' class histogram, the share of
 their dominant class, and their agreement with the predictions beyond chance (adaptation
 should refine them, not replace them; a noisy network's predictions agree little with any
-fusion of them, so raw agreement would penalise exactly the scenes fusion helps most). Fixed bars set on one family of rooms misfire on another (a real
-room whose views are 86% wall), so no bar is absolute.
+fusion of them, so raw agreement would penalise exactly the scenes fusion helps most). Fixed bars
+set on one family of rooms misfire on another (a real room whose views are 86% wall), so no bar is
+absolute.
 """
 
 from __future__ import annotations
@@ -132,10 +133,11 @@ def detect_collapse(
     With ``previous``, every bar is relative to the predictions (``CollapseConfig``): the
     labels' entropy against the predictions' entropy, their dominant class against the
     predictions' dominant class, and their agreement with the predictions beyond what their
-    class frequencies give by chance (:func:`agreement_kappa`); the prior plays no part. A scene's own class mix is so never a collapse: a room whose views are mostly wall,
-    seen so by the network, passes; labels that turned most of what the network saw as other
-    classes into one class do not. Without ``previous`` the one bar is the entropy against
-    the prior: a network that sees one class where the pre-training rooms showed many.
+    class frequencies give by chance (:func:`agreement_kappa`); the prior plays no part. A scene's
+    own class mix is so never a collapse: a room whose views are mostly wall, seen so by the
+    network, passes; labels that turned most of what the network saw as other classes into one class
+    do not. Without ``previous`` the one bar is the entropy against the prior: a network that sees
+    one class where the pre-training rooms showed many.
     """
     cfg = config or CollapseConfig()
     entropy = label_entropy(labels)
@@ -152,11 +154,13 @@ def detect_collapse(
         dominant_limit = previous_frac + cfg.max_dominant_gain * (1.0 - previous_frac)
     if math.isfinite(reference) and entropy < cfg.min_entropy_ratio * reference:
         reasons.append(
-            f"class entropy {entropy:.2f} < {cfg.min_entropy_ratio:g} x reference {reference:.2f} nats"
+            f"class entropy {entropy:.2f} < {cfg.min_entropy_ratio:g} x reference {reference:.2f} "
+            "nats"
         )
     if math.isfinite(dominant_limit) and frac > dominant_limit:
         reasons.append(
-            f"class {cls} covers {100 * frac:.0f}% of the pixels (limit {100 * dominant_limit:.0f}%: "
+            f"class {cls} covers {100 * frac:.0f}% of the pixels (limit "
+            f"{100 * dominant_limit:.0f}%: "
             f"the predictions' dominant class plus {100 * cfg.max_dominant_gain:.0f}% of the rest)"
         )
     if math.isfinite(kappa) and kappa < cfg.min_kappa:

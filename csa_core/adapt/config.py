@@ -1,4 +1,5 @@
-"""Settings of adaptation: one-step modes, joint 2D-3D training, replay, collapse guard, continual runs.
+"""Settings of adaptation: one-step modes, joint 2D-3D training, replay, collapse guard, continual
+runs.
 
 :func:`paper` is the paper's configuration as its official code runs it; docs/presets.md
 "The paper preset" lists every number and where the paper and the code disagree. :func:`cpu`
@@ -41,8 +42,8 @@ PAPER_FIT_EPOCHS = PAPER_PREFIT_EPOCHS + PAPER_JOINT_EPOCHS
 PAPER_CUBE_BOUND = 4.0
 PAPER_FINEST_RESOLUTION = 2048 * int(PAPER_CUBE_BOUND)
 # docs/method.md "Baselines" (CoTTA): the teacher averages its softmax over these scales, each
-# with and without flip; ours for CPU runs: half the teacher passes (6 instead of 12), 0.51 vs 0.90 s per image
-# (benchmarks/results/components.md "Baselines").
+# with and without flip; ours for CPU runs: half the teacher passes (6 instead of 12), 0.51 vs
+# 0.90 s per image (benchmarks/results/components.md "Baselines").
 PAPER_COTTA_SCALES = (0.5, 0.75, 1.0, 1.25, 1.5, 1.75)
 CPU_COTTA_SCALES = (0.75, 1.0, 1.5)
 
@@ -98,7 +99,8 @@ class NerfBudget:
     semantics_in_fit: bool | None = None
     final_lr_fraction: float | None = None
     # Any other field of the NeRF preset, as ``section.name=value`` items applied last
-    # (csa_core.overrides), e.g. ``--set "nerf.preset_overrides=('sampler.render_band_color=false',)"``.
+    # (csa_core.overrides), e.g.
+    # ``--set "nerf.preset_overrides=('sampler.render_band_color=false',)"``.
     preset_overrides: tuple[str, ...] = ()
     seed: int = 0
 
@@ -113,7 +115,9 @@ class NerfBudget:
             from csa_core.nerf.config import preset as nerf_preset
             from csa_core.overrides import apply_overrides
 
-            apply_overrides(nerf_preset(self.preset), self.preset_overrides, flag="--set nerf.preset_overrides")
+            apply_overrides(
+                nerf_preset(self.preset), self.preset_overrides, flag="--set nerf.preset_overrides"
+            )
 
     def fit_steps(self, mode: str, views: int) -> int:
         """NeRF steps of the fit before the pseudo-labels in ``mode`` on a scene of ``views``
@@ -169,7 +173,8 @@ class JointBudget:
 class ReplayConfig:
     """Replay of earlier scenes (rendered from the memory bank) and of pre-training data."""
 
-    buffer_size: int = PAPER_BUFFER_SIZE  # docs/method.md "Remember": 100 pairs, split equally among previous scenes
+    # docs/method.md "Remember": 100 pairs, split equally among previous scenes
+    buffer_size: int = PAPER_BUFFER_SIZE
     views: Literal["train", "novel"] = "train"  # rendered at training or novel viewpoints
     # Which views of each earlier scene (csa_core.adapt.replay): "random" (the paper) draws
     # floor(buffer_size / n) of the n earlier scenes' views each at random, seeded by ``seed``
@@ -311,8 +316,8 @@ def paper() -> AdaptConfig:
     without our semantic feature table, with the official semantic MLP (one hidden layer)
     reading the geometry features behind a stop-gradient (the paper's: no semantic gradient
     reaches the density MLP or the hash table), in the official fixed cube
-    (``normalization="cube"``), each step's 4096 rays drawn from one training view. Fit 60 epochs before
-    the pseudo-labels (GI+NL, NI+NL); joint: 10 epochs, then
+    (``normalization="cube"``), each step's 4096 rays drawn from one training view. Fit 60 epochs
+    before the pseudo-labels (GI+NL, NI+NL); joint: 10 epochs, then
     50 network epochs alternating per batch with full NeRF steps (equal NeRF budgets).
     Network: Adam 1e-5, batch 4, 50 epochs, constant rate. Replay: floor(100 / n) views of
     each of the n earlier scenes drawn at random, 10% of the pre-training data, batches of
@@ -391,8 +396,8 @@ def cpu() -> AdaptConfig:
     camera images with the NeRF's labels (the paper: on its rendered images): at 300 fit steps
     the renders are blurred, and over 3 seeds camera images gave 0.8 ACC more (27.6 against
     26.8; benchmarks/results/continual.md "Joint rounds on camera images"); the step then
-    renders labels only, which takes about half the time. The NeRF's learning rate is fixed, as in the
-    paper (the ``fast`` preset decays it; at 300 steps the decay cost NeRF labels and render
+    renders labels only, which takes about half the time. The NeRF's learning rate is fixed, as in
+    the paper (the ``fast`` preset decays it; at 300 steps the decay cost NeRF labels and render
     time and gained no accuracy: benchmarks/results/continual.md "Deviations measured with the
     multi-step experiment, first set"). docs/deviations.md lists every departure.
     """
@@ -441,7 +446,8 @@ PRESETS = {"paper": paper, "paper-official": paper_official, "cpu": cpu, "tiny":
 
 
 def preset(name: str) -> AdaptConfig:
-    """A fresh config of the preset ``name`` (``paper``, ``paper-official``, ``cpu`` or ``tiny``)."""
+    """A fresh config of the preset ``name`` (``paper``, ``paper-official``, ``cpu`` or
+    ``tiny``)."""
     try:
         return PRESETS[name]()
     except KeyError:

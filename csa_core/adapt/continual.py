@@ -1,4 +1,5 @@
-"""Continual adaptation over a sequence of scenes (docs/method.md "Remember" and "Protocols and metrics").
+"""Continual adaptation over a sequence of scenes (docs/method.md "Remember" and "Protocols and
+metrics").
 
 Step i: adapt to scene i with the run's method (:func:`csa_core.adapt.step.continual_step`,
 the step the service's adapt job runs too), then score every scene's validation views

@@ -206,7 +206,8 @@ def check_labels(
     prior_entropy: float | None,
     in_joint: bool = False,
 ) -> GuardDecision:
-    """Collapse check of ``labels`` against the previous model's predictions, and the guard's decision."""
+    """Collapse check of ``labels`` against the previous model's predictions, and the guard's
+    decision."""
     report = detect_collapse(labels, pseudo.predictions, config.collapse, prior_entropy)
     previous = detect_collapse(pseudo.predictions, None, config.collapse, prior_entropy)
     return guard(
@@ -226,7 +227,9 @@ def finetune_on_labels(
 ) -> list[float]:
     """Fine-tune on image/label pairs (plus replay) for ``epochs``; returns the epoch losses.
     ``on_progress`` (:mod:`csa_core.progress`) is called after every epoch."""
-    dataset, primary, secondary = training_pairs(images, labels, replay, pretrain, config.seg.augment)
+    dataset, primary, secondary = training_pairs(
+        images, labels, replay, pretrain, config.seg.augment
+    )
     tuner = SegFinetuner(model, config, epochs, batches_per_epoch(primary, secondary, config))
     losses: list[float] = []
     for k in range(1, epochs + 1):
@@ -351,4 +354,3 @@ def finetune_adapt(
     result.seconds = seconds
     notify(on_progress, f"adapted to {scene.name}", 1.0)
     return result
-

@@ -246,7 +246,9 @@ def _per_batch(
             if current:
                 views = [frames[i] for i in current]
                 t = time.perf_counter()
-                images, labels = render_at_frames(nerf, views, scene.intrinsics, color=render_images)
+                images, labels = render_at_frames(
+                    nerf, views, scene.intrinsics, color=render_images
+                )
                 for i, f in zip(current, views, strict=True):
                     dataset.images[i] = images[f.name] if render_images else f.color
                     dataset.labels[i] = nerf_labels[f.name] = labels[f.name]

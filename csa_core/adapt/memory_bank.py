@@ -2,9 +2,10 @@
 
 :class:`NerfMemory` is what a continual step needs of a memory bank (the scenes, a scene's
 NeRF, adding one, the sizes); :class:`MemoryBank` keeps it in one folder, the service keeps
-it in its artifact store. In the folder, each scene is a safetensors file written by ``csa_core.nerf.checkpoint`` (tensors plus JSON
-metadata, never pickled); ``index.json`` lists the scenes in the order they were added with
-the size of each file, which is the per-scene memory footprint (docs/method.md "Protocols and metrics").
+it in its artifact store. In the folder, each scene is a safetensors file written by
+``csa_core.nerf.checkpoint`` (tensors plus JSON metadata, never pickled); ``index.json`` lists the
+scenes in the order they were added with the size of each file, which is the per-scene memory
+footprint (docs/method.md "Protocols and metrics").
 """
 
 from __future__ import annotations

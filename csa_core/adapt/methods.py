@@ -70,7 +70,9 @@ from csa_core.seg.models import SegmentationNet
 
 # What a step's record says when our method banked no NeRF, per guard decision.
 NOT_BANKED = {
-    "skip": "the collapse guard skipped the scene: no NeRF banked, later steps replay nothing of it",
+    "skip": (
+        "the collapse guard skipped the scene: no NeRF banked, later steps replay nothing of it"
+    ),
     "fallback_predictions": (
         "the collapse guard rejected the NeRF's labels and the network trained on its own "
         "predictions: no NeRF banked, later steps replay nothing of this scene"

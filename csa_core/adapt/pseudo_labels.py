@@ -1,5 +1,6 @@
 """Pseudo-labels of a new scene: predict with the current network, fuse in a Semantic-NeRF,
-render labels (and images) back at the training views (docs/method.md "Predict", "Fuse in 3D", "Render pseudo-labels")."""
+render labels (and images) back at the training views (docs/method.md "Predict", "Fuse in 3D",
+"Render pseudo-labels")."""
 
 from __future__ import annotations
 

@@ -59,7 +59,8 @@ def random_views(available: int, count: int, rng: np.random.Generator) -> list[i
 
 @dataclass
 class ReplayBuffer:
-    """Image/label pairs rendered from earlier scenes' NeRFs; ``sources[k]`` names the scene of pair k."""
+    """Image/label pairs rendered from earlier scenes' NeRFs; ``sources[k]`` names the scene of pair
+    k."""
 
     images: list[np.ndarray] = field(default_factory=list)
     labels: list[np.ndarray] = field(default_factory=list)
@@ -94,8 +95,8 @@ class ReplayBuffer:
     ) -> ReplayBuffer:
         """Render ``size`` pairs split equally among ``scenes`` (default: every scene in the bank)
         at their training or novel viewpoints, the views picked by ``draw`` (``even`` or
-        ``random``, seeded by ``seed``; see the module docstring). ``max_render_samples`` caps the marching
-        samples per ray: stored NeRFs have no sensor depth to place samples, and on a CPU
+        ``random``, seeded by ``seed``; see the module docstring). ``max_render_samples`` caps the
+        marching samples per ray: stored NeRFs have no sensor depth to place samples, and on a CPU
         the cap decides what replay costs. The NeRFs render on ``device`` (``None``/``"auto"``:
         CUDA when present), the step's segmentation device."""
         if views not in ("train", "novel"):

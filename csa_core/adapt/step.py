@@ -2,9 +2,9 @@
 
 Every caller adapts through :func:`continual_step`: ``csa adapt`` and ``csa experiment``
 (through :func:`csa_core.adapt.continual.run_continual`, which also scores R) and the
-service's adapt job, which builds a :class:`~csa_core.adapt.methods.ContinualState` from its stores, calls the step
-once and registers what the state now holds. A step of our method renders the replay buffer
-from the memory bank (at most ``config.replay.max_render_samples`` samples per ray), adapts
+service's adapt job, which builds a :class:`~csa_core.adapt.methods.ContinualState` from its stores,
+calls the step once and registers what the state now holds. A step of our method renders the replay
+buffer from the memory bank (at most ``config.replay.max_render_samples`` samples per ray), adapts
 with it and the pre-training slice, banks the scene's NeRF, and (with ``config.adabn`` and
 ``config.pool_batchnorm``) records the network's BatchNorm statistics for the scene and runs
 the network with the pooled statistics of every recorded scene (:mod:`csa_core.adapt.bn_memory`).
@@ -48,7 +48,8 @@ def continual_step(
     statistics are recorded for ``scene`` (not after a skip) and the reported network (and
     ``model``, when that is another one: CoTTA's student) run with the mixture of all records.
     The record has the method's fields plus ``batchnorm_pooled`` (the scenes in the mixture,
-    ``None`` without pooling) and ``memory_bytes`` (:meth:`~csa_core.adapt.methods.ContinualState.memory_bytes`).
+    ``None`` without pooling) and ``memory_bytes``
+    (:meth:`~csa_core.adapt.methods.ContinualState.memory_bytes`).
     ``on_progress`` hears the adaptation (:mod:`csa_core.progress`).
     """
     record = state.method.step(state, model, scene, on_progress)

@@ -21,7 +21,8 @@ def _as_float_array(values: object, name: str) -> np.ndarray:
 
 
 def _nonfinite_needed(scores: np.ndarray, base: np.ndarray) -> list[str]:
-    """Names of the entries the metrics read (R[i, j] with j <= i + 1, all of b) that are not finite."""
+    """Names of the entries the metrics read (R[i, j] with j <= i + 1, all of b) that are not
+    finite."""
     steps = len(base)
     needed = [
         (f"R[{i}, {j}]", scores[i, j]) for i in range(steps) for j in range(min(i + 2, steps))
@@ -52,7 +53,8 @@ def continual_metrics(R: Matrix, b: Sequence[float] | np.ndarray) -> dict[str, f
     steps = scores.shape[0]
     if base.shape != (steps,):
         raise ValueError(
-            f"continual_metrics: b must have {steps} entries (one per scene), got shape {base.shape}"
+            f"continual_metrics: b must have {steps} entries (one per scene), got shape "
+            f"{base.shape}"
         )
 
     bad = _nonfinite_needed(scores, base)

@@ -149,10 +149,10 @@ def evaluate_label_folders(
     Frames are matched by file stem; every ground-truth frame must have a prediction (extra
     predictions are ignored and never read). With ``predicted_only`` the frames scored are the
     prediction folder's instead (e.g. a render of a scene's training views against the scene's
-    whole label folder), and every one of them must have a ground truth. Maps are read one pair at a time by the scene
-    reader's :func:`read_label_image`, so the same files are accepted (single-channel 8- or
-    16-bit PNG, ids 0..40). Returns :meth:`ConfusionMatrix.summary` plus ``num_frames``.
-    Raises :class:`CSAInputError` naming the file for unreadable, multi-channel or
+    whole label folder), and every one of them must have a ground truth. Maps are read one pair at a
+    time by the scene reader's :func:`read_label_image`, so the same files are accepted
+    (single-channel 8- or 16-bit PNG, ids 0..40). Returns :meth:`ConfusionMatrix.summary` plus
+    ``num_frames``. Raises :class:`CSAInputError` naming the file for unreadable, multi-channel or
     out-of-range maps and for size mismatches, and naming the frames a prediction lacks.
     """
     pred_dir, gt_dir = Path(pred_dir), Path(gt_dir)

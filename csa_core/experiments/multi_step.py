@@ -79,7 +79,12 @@ def run(inputs: ExperimentInputs) -> ExperimentReport:
             work = inputs.out.joinpath("runs", *parts)
             result = inputs.finished_run(parts, config, method, b) if b is not None else None
             if result is not None:
-                log.info("%s, AdaBN %s, seed %d: finished earlier, reused (--resume)", method, adabn_name(adabn), seed)
+                log.info(
+                    "%s, AdaBN %s, seed %d: finished earlier, reused (--resume)",
+                    method,
+                    adabn_name(adabn),
+                    seed,
+                )
             else:
                 work = inputs.run_folder(*parts)
                 result = run_continual(

@@ -37,7 +37,9 @@ def labelling_network(model: SegmentationNet, scene: Scene, config: AdaptConfig)
     if not config.adabn_before_labels:
         return model
     net = copy.deepcopy(model)
-    apply_adabn(net, [f.color for f in scene.train_frames], None, config.seg.seed, config.seg.device)
+    apply_adabn(
+        net, [f.color for f in scene.train_frames], None, config.seg.seed, config.seg.device
+    )
     return net
 
 

@@ -33,7 +33,8 @@ CONFIG_FORMAT = "csa-experiments/1"
 
 
 def mean_std(values: Iterable[float]) -> tuple[float, float]:
-    """Mean and sample std of the finite ``values`` (NaN, NaN when there are none; std 0 for one)."""
+    """Mean and sample std of the finite ``values`` (NaN, NaN when there are none; std 0 for
+    one)."""
     arr = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
     if arr.size == 0:
         return float("nan"), float("nan")
@@ -235,9 +236,7 @@ def _save_heatmap(path: Path, plot: Heatmap) -> None:
     values = np.asarray(plot.values, dtype=np.float64)
     rows, cols = values.shape
     fig, ax = _figure((max(6.4, 3.2 + 1.1 * cols), max(4.0, 1.6 + 0.6 * rows)))
-    image = ax.imshow(
-        np.ma.masked_invalid(values), cmap="viridis", vmin=plot.vmin, vmax=plot.vmax
-    )
+    image = ax.imshow(np.ma.masked_invalid(values), cmap="viridis", vmin=plot.vmin, vmax=plot.vmax)
     fig.colorbar(image, ax=ax)
     finite = values[np.isfinite(values)]
     if plot.vmin is not None and plot.vmax is not None:
@@ -319,7 +318,8 @@ def _read_config(path: Path) -> dict[str, Any]:
 
 
 def jsonable(value: Any) -> Any:
-    """A value JSON can hold: NaN and infinity become null (JSON has neither); tuples lists; paths strings."""
+    """A value JSON can hold: NaN and infinity become null (JSON has neither); tuples lists; paths
+    strings."""
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, np.generic):

@@ -97,18 +97,25 @@ class ModelCard:
     def to_json(self) -> str:
         text = json.dumps(asdict(self), sort_keys=True, default=_jsonable)
         if len(text.encode()) > MAX_CARD_BYTES:
-            raise ValueError(f"model card of {len(text.encode())} bytes: more than the {MAX_CARD_BYTES} a card may hold")
+            raise ValueError(
+                f"model card of {len(text.encode())} bytes: more than the {MAX_CARD_BYTES} a card "
+                "may hold"
+            )
         return text
 
     @classmethod
     def from_json(cls, text: str) -> ModelCard:
         size = len(text.encode(errors="replace"))
         if size > MAX_CARD_BYTES:
-            raise ValueError(f"{size} bytes of JSON, more than the {MAX_CARD_BYTES} a card may hold")
+            raise ValueError(
+                f"{size} bytes of JSON, more than the {MAX_CARD_BYTES} a card may hold"
+            )
         try:
             data = json.loads(text)
         except RecursionError:
-            raise ValueError(f"lists and objects nest more than {MAX_CARD_DEPTH} levels deep") from None
+            raise ValueError(
+                f"lists and objects nest more than {MAX_CARD_DEPTH} levels deep"
+            ) from None
         if _depth(data) > MAX_CARD_DEPTH:
             raise ValueError(f"lists and objects nest more than {MAX_CARD_DEPTH} levels deep")
         if not isinstance(data, dict):
@@ -122,7 +129,9 @@ def _depth(value: Any) -> int:
     deepest, todo = 0, [(value, 1)]
     while todo:
         item, level = todo.pop()
-        children = item.values() if isinstance(item, dict) else item if isinstance(item, list) else None
+        children = (
+            item.values() if isinstance(item, dict) else item if isinstance(item, list) else None
+        )
         if children is not None:
             deepest = max(deepest, level)
             todo.extend((child, level + 1) for child in children)
@@ -171,7 +180,8 @@ def save_checkpoint(
     )
     if len(written.class_names) != written.num_classes:
         raise ValueError(
-            f"save_checkpoint: {len(written.class_names)} class names for {written.num_classes} outputs"
+            f"save_checkpoint: {len(written.class_names)} class names for {written.num_classes} "
+            "outputs"
         )
     metadata = {_HEADER_KEY: written.to_json()}  # refuses an oversized card before any file
     with atomic_file(path) as tmp:
@@ -213,18 +223,36 @@ def _check_card_fields(path: str | Path, card: ModelCard) -> None:
     read from a file anyone may have written): a :class:`CSAInputError` naming the field."""
     n = card.num_classes
     if not isinstance(n, int) or isinstance(n, bool) or not 1 <= n <= NUM_CLASSES:
-        raise CSAInputError(path, f"model card: num_classes must be an integer within 1..{NUM_CLASSES} (NYU40 ids), got {n!r}")
-    if not (isinstance(card.class_names, list) and len(card.class_names) == n and all(isinstance(c, str) for c in card.class_names)):
-        raise CSAInputError(path, f"model card: class_names must be a list of {n} names (one per class)")
+        raise CSAInputError(
+            path,
+            f"model card: num_classes must be an integer within 1..{NUM_CLASSES} (NYU40 ids), got "
+            f"{n!r}",
+        )
+    if not (
+        isinstance(card.class_names, list)
+        and len(card.class_names) == n
+        and all(isinstance(c, str) for c in card.class_names)
+    ):
+        raise CSAInputError(
+            path, f"model card: class_names must be a list of {n} names (one per class)"
+        )
     for name in ("mean", "std"):
         values = getattr(card, name)
-        if not (isinstance(values, list) and len(values) == 3 and all(_is_number(v) for v in values)):
-            raise CSAInputError(path, f"model card: {name} must be a list of 3 finite numbers, got {values!r}"[:300])
+        if not (
+            isinstance(values, list) and len(values) == 3 and all(_is_number(v) for v in values)
+        ):
+            raise CSAInputError(
+                path, f"model card: {name} must be a list of 3 finite numbers, got {values!r}"[:300]
+            )
     if min(card.std) <= 0:
         raise CSAInputError(path, "model card: std entries must be > 0")
     size = card.input_size
-    if size is not None and not (isinstance(size, list) and len(size) == 2 and all(type(v) is int and v >= 1 for v in size)):
-        raise CSAInputError(path, f"model card: input_size must be [width, height], got {size!r}"[:300])
+    if size is not None and not (
+        isinstance(size, list) and len(size) == 2 and all(type(v) is int and v >= 1 for v in size)
+    ):
+        raise CSAInputError(
+            path, f"model card: input_size must be [width, height], got {size!r}"[:300]
+        )
     for name in ("train_config", "metrics"):
         if not isinstance(getattr(card, name), dict):
             raise CSAInputError(path, f"model card: {name} must be a JSON object")
@@ -249,7 +277,10 @@ def load_checkpoint(
     layout, metadata = read_safetensors_header(path)
     card = _card_from_metadata(path, metadata)
     model = build_model(card.arch, num_classes=card.num_classes, mean=card.mean, std=card.std)
-    expected = {k: (_DTYPE_NAMES.get(v.dtype, str(v.dtype)), tuple(v.shape)) for k, v in model.state_dict().items()}
+    expected = {
+        k: (_DTYPE_NAMES.get(v.dtype, str(v.dtype)), tuple(v.shape))
+        for k, v in model.state_dict().items()
+    }
     missing = sorted(set(expected) - set(layout))
     unexpected = sorted(set(layout) - set(expected))
     if missing or unexpected:
@@ -260,7 +291,8 @@ def load_checkpoint(
         k = wrong[0]
         raise CSAInputError(
             path,
-            f"tensor {k} is {layout[k][0]} {layout[k][1]}, {card.arch} needs {expected[k][0]} {expected[k][1]}",
+            f"tensor {k} is {layout[k][0]} {layout[k][1]}, {card.arch} needs {expected[k][0]} "
+            f"{expected[k][1]}",
         )
     # The header matches the network: only now are the tensors read.
     tensors, _ = read_safetensors(path)

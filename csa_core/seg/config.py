@@ -40,10 +40,11 @@ class TrainConfig:
     """Optimiser, schedule and loop settings.
 
     The defaults are ours, for pre-training a light network from scratch on a CPU; the
-    paper's adaptation values are in :class:`csa_core.adapt.config.SegBudget`. ``lr`` is Adam's initial rate,
-    decayed per step to ``final_lr`` (0 unless set) by ``schedule`` (``poly``:
-    (1 - t)^poly_power, ``linear``, ``cosine``; ``constant`` keeps ``lr``). Every ``val_every`` epochs (and after the last) the model is scored.
-    Before each validation the BatchNorm running statistics are recomputed on up to
+    paper's adaptation values are in :class:`csa_core.adapt.config.SegBudget`. ``lr`` is Adam's
+    initial rate, decayed per step to ``final_lr`` (0 unless set) by ``schedule`` (``poly``:
+    (1 - t)^poly_power, ``linear``, ``cosine``; ``constant`` keeps ``lr``). Every ``val_every``
+    epochs (and after the last) the model is scored. Before each validation the BatchNorm running
+    statistics are recomputed on up to
     ``precise_bn_images`` training images (0 disables): in a run of a few hundred steps the
     running averages lag far behind the weights (MobileNetV3's momentum is 0.01), and a
     network scored with stale statistics looks much worse than it is.
@@ -101,7 +102,9 @@ class AugmentConfig:
         self.crop_scale = tuple(self.crop_scale)  # type: ignore[assignment]
         for name in ("hflip", "grayscale"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"AugmentConfig: {name} is a probability in [0, 1], got {getattr(self, name)}")
+                raise ValueError(
+                    f"AugmentConfig: {name} is a probability in [0, 1], got {getattr(self, name)}"
+                )
         for name in ("rotation_deg", "crop_aspect_jitter", "brightness", "contrast", "saturation"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"AugmentConfig: {name} must be >= 0, got {getattr(self, name)}")
@@ -109,7 +112,10 @@ class AugmentConfig:
             raise ValueError(f"AugmentConfig: hue must be in [0, 0.5], got {self.hue}")
         lo, hi = self.crop_scale
         if not 0.0 < lo <= hi <= 1.0:
-            raise ValueError(f"AugmentConfig: crop_scale must be (low, high) with 0 < low <= high <= 1, got {self.crop_scale}")
+            raise ValueError(
+                "AugmentConfig: crop_scale must be (low, high) with 0 < low <= high <= 1, got "
+                f"{self.crop_scale}"
+            )
 
 
 @dataclass

@@ -45,7 +45,8 @@ class SegmentationDataset(Dataset[tuple[Tensor, Tensor]]):
             check_label_map(lab, f"labels of {name}")
             if img.shape[:2] != lab.shape:
                 raise ValueError(
-                    f"SegmentationDataset: {name}: image {img.shape[:2]} and labels {lab.shape} differ in size"
+                    f"SegmentationDataset: {name}: image {img.shape[:2]} and labels {lab.shape} "
+                    "differ in size"
                 )
         self.images = list(images)
         self.labels = list(labels)
@@ -59,7 +60,8 @@ class SegmentationDataset(Dataset[tuple[Tensor, Tensor]]):
         label_folder: str = NYU40_FOLDER,
         transform: PairTransform | None = None,
     ) -> SegmentationDataset:
-        """The ``split`` frames (``train``, ``val`` or ``all``) of scenes, labelled by ``label_folder``."""
+        """The ``split`` frames (``train``, ``val`` or ``all``) of scenes, labelled by
+        ``label_folder``."""
         scenes = [scenes] if isinstance(scenes, Scene) else list(scenes)
         images: list[np.ndarray] = []
         labels: list[np.ndarray] = []

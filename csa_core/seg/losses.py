@@ -28,12 +28,14 @@ def segmentation_loss(logits: Tensor, labels: Tensor, weight: Tensor | None = No
     """
     if logits.ndim != 4 or labels.shape != (logits.shape[0], *logits.shape[2:]):
         raise ValueError(
-            f"segmentation_loss: logits {tuple(logits.shape)} and labels {tuple(labels.shape)} do not match"
+            f"segmentation_loss: logits {tuple(logits.shape)} and labels {tuple(labels.shape)} do "
+            "not match"
         )
     target = nyu40_to_target(labels)
     if int(target.max()) >= logits.shape[1]:
         raise ValueError(
-            f"segmentation_loss: label id {int(target.max()) + 1} exceeds the {logits.shape[1]} outputs"
+            f"segmentation_loss: label id {int(target.max()) + 1} exceeds the {logits.shape[1]} "
+            "outputs"
         )
     if not bool((target != IGNORE_INDEX).any()):
         return logits.sum() * 0.0

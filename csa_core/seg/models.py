@@ -150,7 +150,8 @@ def load_foreign_weights(model: SegmentationNet, path: str | Path) -> tuple[list
     if not updates:
         raise CSAInputError(
             path,
-            f"no tensor matches {model.arch} by name and shape ({len(tensors)} tensors in the file)",
+            f"no tensor matches {model.arch} by name and shape ({len(tensors)} tensors in the "
+            "file)",
         )
     model.net.load_state_dict(updates, strict=False)
     return [n for n in tensors if n not in skipped], skipped

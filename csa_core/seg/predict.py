@@ -123,7 +123,8 @@ def evaluate_scene(
     device: str | torch.device | None = None,
     size: tuple[int, int] | None = None,
 ) -> ConfusionMatrix:
-    """Confusion matrix of the model's predictions on the ``split`` views against ``label_folder``."""
+    """Confusion matrix of the model's predictions on the ``split`` views against
+    ``label_folder``."""
     frames = scene.split(split)
     missing = [f.name for f in frames if label_folder not in f.labels]
     if missing:

@@ -28,8 +28,9 @@ def pretrain(
     """Train a fresh network on labelled scenes and keep the best one on the validation views.
 
     Without ``val_scenes`` the network trains on each scene's training views and is scored
-    on each scene's validation views (the split of docs/method.md "Protocols and metrics"). With ``val_scenes`` it trains on all
-    views of ``train_scenes`` and is scored on the validation views of ``val_scenes``.
+    on each scene's validation views (the split of docs/method.md "Protocols and metrics"). With
+    ``val_scenes`` it trains on all views of ``train_scenes`` and is scored on the validation views
+    of ``val_scenes``.
     ``weights`` is an optional local safetensors file to start from (torchvision names).
     The checkpoint at ``out`` records the config and the scenes used. ``on_progress`` is
     :func:`~csa_core.seg.train.train_segmentation`'s (per epoch and within long epochs).
@@ -41,7 +42,8 @@ def pretrain(
         if scene.size != tuple(config.size):
             raise CSAInputError(
                 scene.root or scene.name,
-                f"scene is {scene.size[0]}x{scene.size[1]}, the config says {config.size[0]}x{config.size[1]}",
+                f"scene is {scene.size[0]}x{scene.size[1]}, the config says "
+                f"{config.size[0]}x{config.size[1]}",
             )
     train_split = "all" if val_scenes else "train"
     transform = JointAugment(config.augment) if config.augment is not None else None

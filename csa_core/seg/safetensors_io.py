@@ -39,10 +39,15 @@ def read_safetensors(path: str | Path) -> tuple[dict[str, Tensor], dict[str, str
 
 def _layout(f: Any) -> dict[str, tuple[str, tuple[int, ...]]]:
     views = {name: f.get_slice(name) for name in f.keys()}
-    return {name: (str(v.get_dtype()), tuple(int(n) for n in v.get_shape())) for name, v in views.items()}
+    return {
+        name: (str(v.get_dtype()), tuple(int(n) for n in v.get_shape()))
+        for name, v in views.items()
+    }
 
 
-def read_safetensors_header(path: str | Path) -> tuple[dict[str, tuple[str, tuple[int, ...]]], dict[str, str]]:
+def read_safetensors_header(
+    path: str | Path,
+) -> tuple[dict[str, tuple[str, tuple[int, ...]]], dict[str, str]]:
     """Each tensor's (safetensors dtype such as ``F32``, shape) and the string metadata of a
     safetensors file, from its header alone: no tensor is read."""
     return _read_safetensors(path, _layout)

@@ -94,7 +94,8 @@ class SegmentationTrainer:
         loss = segmentation_loss(self.model(images), labels)
         if not torch.isfinite(loss):
             raise FloatingPointError(
-                f"training loss became {loss.item()} at step {self.steps_done}; lower the learning rate"
+                f"training loss became {loss.item()} at step {self.steps_done}; lower the "
+                "learning rate"
             )
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -107,7 +108,8 @@ class SegmentationTrainer:
     def recompute_batchnorm(
         self, dataset: Dataset[tuple[Tensor, Tensor]], generator: torch.Generator | None = None
     ) -> int:
-        """Recompute BatchNorm statistics on up to ``config.precise_bn_images`` images of ``dataset``."""
+        """Recompute BatchNorm statistics on up to ``config.precise_bn_images`` images of
+        ``dataset``."""
         limit = self.config.precise_bn_images
         n = len(dataset)  # type: ignore[arg-type]
         if limit <= 0 or n < 2:
@@ -245,8 +247,8 @@ def train_segmentation(
     BatchNorm); ``batch_sampler`` replaces that, e.g. to mix replay and current data in fixed
     proportions. Validation scores each set of ``val_sets`` separately and ranks epochs by
     their mean mIoU; without validation sets the last epoch is the best. On return the model
-    holds the best weights, in eval mode, and ``checkpoint`` (if given) has them with ``card`` completed
-    by the training config and scores.
+    holds the best weights, in eval mode, and ``checkpoint`` (if given) has them with ``card``
+    completed by the training config and scores.
 
     ``on_progress(message, fraction)`` (:mod:`csa_core.progress`) is called after every epoch
     (before its checkpoint is written) and every ``BATCH_PROGRESS_EVERY`` batches within one.

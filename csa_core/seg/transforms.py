@@ -69,7 +69,8 @@ class JointAugment:
     def __call__(self, image: Tensor, labels: Tensor) -> tuple[Tensor, Tensor]:
         if image.ndim != 3 or image.shape[0] != 3 or labels.shape != image.shape[1:]:
             raise ValueError(
-                f"JointAugment: expected (3, H, W) image and (H, W) labels, got {tuple(image.shape)} and {tuple(labels.shape)}"
+                "JointAugment: expected (3, H, W) image and (H, W) labels, got "
+                f"{tuple(image.shape)} and {tuple(labels.shape)}"
             )
         img, lab = self._pipeline(*labels.shape)(tv_tensors.Image(image), tv_tensors.Mask(labels))
         return img.as_subclass(Tensor), lab.as_subclass(Tensor)

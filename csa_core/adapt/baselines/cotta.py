@@ -241,4 +241,3 @@ class CoTTA:
                 p.numel() * p.element_size() for p in self.student.parameters() if p.requires_grad
             )
         return CoTTAFootprint(module_bytes(self.teacher), module_bytes(self.source), moments)
-

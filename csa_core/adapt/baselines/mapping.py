@@ -164,7 +164,8 @@ class MappingMemory:
 def mapping_replay_buffer(memories: Sequence[MappingMemory], size: int) -> ReplayBuffer:
     """A replay buffer of ``size`` stored pairs from earlier scenes, split and picked by the
     same rule as the NeRF replay (equal shares, views evenly spaced along each trajectory),
-    so Mapping and CSA see the same batch composition (docs/method.md "Remember" fixes ``size`` at 100)."""
+    so Mapping and CSA see the same batch composition (docs/method.md "Remember" fixes ``size`` at
+    100)."""
     from csa_core.adapt.replay import ReplayBuffer, evenly_spaced, split_buffer
 
     buffer = ReplayBuffer()
@@ -183,7 +184,8 @@ def mapping_memory(
     pseudo_labels: Mapping[str, np.ndarray],
     voxel_map: VoxelSemanticMap | None = None,
 ) -> MappingMemory:
-    """The replay memory of a scene: the camera images of the labelled frames and their map labels."""
+    """The replay memory of a scene: the camera images of the labelled frames and their map
+    labels."""
     frames = _frames_by_name(scene, list(pseudo_labels))
     return MappingMemory(
         scene=scene.name,
@@ -192,4 +194,3 @@ def mapping_memory(
         names=[f.name for f in frames],
         map_bytes=voxel_map.nbytes if voxel_map is not None else 0,
     )
-

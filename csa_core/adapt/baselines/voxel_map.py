@@ -262,7 +262,8 @@ class VoxelSemanticMap:
                 )
         else:
             raise ValueError(
-                f"integrate: expected (H, W) labels or (H, W, C) probabilities, got {prediction.shape}"
+                "integrate: expected (H, W) labels or (H, W, C) probabilities, got "
+                f"{prediction.shape}"
             )
         if self.backend == "torch":
             points = _integrate_torch(self, prediction, depth, valid, pose, intrinsics)
@@ -425,7 +426,8 @@ class VoxelSemanticMap:
         return labels.reshape(h, w), depth.reshape(h, w)
 
     def labels_for_pose(self, pose: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
-        """(H, W) uint8 NYU40 labels of a camera at ``pose``, read by ray casting (:meth:`raycast`)."""
+        """(H, W) uint8 NYU40 labels of a camera at ``pose``, read by ray casting
+        (:meth:`raycast`)."""
         return self.raycast(pose, intrinsics)[0]
 
     def labels_at_depth(
