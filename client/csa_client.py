@@ -22,6 +22,7 @@ from client.errors import (
     CSAHTTPError,
     CSATimeout,
     JobFailed,
+    NotFound,
     error_for_status,
 )
 from client.models import (
@@ -209,8 +210,6 @@ class CSAClient:
 
     def ensure_scene(self, name: str) -> Scene:
         """The scene of this name, created if needed."""
-        from client.errors import NotFound
-
         try:
             return self.scene(name)
         except NotFound:
