@@ -17,7 +17,6 @@ from typing import Any, Literal
 
 from csa_core.seg.config import AugmentConfig, official_augment
 
-Mode = Literal["gi_nl", "ni_nl", "joint"]
 MODES: tuple[str, ...] = ("gi_nl", "ni_nl", "joint")
 JOINT_SCHEDULES: tuple[str, ...] = ("round", "batch")
 REPLAY_DRAWS: tuple[str, ...] = ("even", "random")
