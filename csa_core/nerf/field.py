@@ -15,14 +15,21 @@ from torch import Tensor, nn
 from csa_core.nerf.config import FieldConfig
 from csa_core.nerf.hash_encoding import HashEncoding
 
+# Above this the density's exponent is clipped: exp(88.7) overflows float32, and an infinite
+# density times a zero-length interval made every parameter NaN in one step on a synthetic
+# office captured from random viewpoints (step 742 of a `fast` fit; density logits reached 95).
+# exp(30) = 1e13 per metre is opaque over any interval, so healthy fits never reach it.
+MAX_DENSITY_LOGIT = 30.0
+
 
 class _TruncExp(torch.autograd.Function):
-    """exp(x) whose gradient uses exp(clamp(x, max=15)): stable density activation (Instant-NGP)."""
+    """exp(min(x, MAX_DENSITY_LOGIT)) whose gradient uses exp(clamp(x, -15, 15)): stable
+    density activation (Instant-NGP's, with the forward kept finite)."""
 
     @staticmethod
     def forward(ctx, x: Tensor) -> Tensor:
         ctx.save_for_backward(x)
-        return torch.exp(x)
+        return torch.exp(x.clamp(max=MAX_DENSITY_LOGIT))
 
     @staticmethod
     def backward(ctx, g: Tensor) -> Tensor:

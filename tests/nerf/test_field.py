@@ -116,6 +116,23 @@ def test_density_is_zero_outside_the_unit_cube_and_trunc_exp_is_stable():
     assert torch.isfinite(z.grad).all()
 
 
+def test_an_overflowing_density_renders_finite_weights():
+    """A density logit past float32's exp range on a zero-length interval (depth-guided
+    samples can touch) once made a whole fit NaN: the forward is clipped, so weights and
+    gradients stay finite, and ordinary logits are untouched."""
+    logits = torch.tensor([5.0, 95.0, 95.0, 2.0], requires_grad=True)
+    sigma = trunc_exp(logits)
+    assert torch.isfinite(sigma).all()
+    assert sigma[0] == torch.exp(torch.tensor(5.0)) and sigma[3] == torch.exp(torch.tensor(2.0))
+    samples = RaySamples(
+        torch.zeros(4, dtype=torch.long), torch.tensor([0.0, 1.0, 1.0, 2.0]),
+        torch.tensor([1.0, 1.0, 1.5, 3.0]), num_rays=1,
+    )  # fmt: skip
+    weights, _, _ = render_weights(sigma, samples)
+    weights.sum().backward()
+    assert torch.isfinite(weights).all() and torch.isfinite(logits.grad).all()
+
+
 def test_spherical_harmonics_shapes_and_constant_term():
     d = torch.nn.functional.normalize(torch.randn(10, 3), dim=-1)
     for deg in (1, 2, 3, 4):
