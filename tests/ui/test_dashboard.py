@@ -421,7 +421,12 @@ def test_a_failed_job_shows_its_reason_and_can_be_retried(dash: Dashboard) -> No
     assert "no ground-truth labels" in page.inner_text("#job-error")
     assert page.locator("#job-retry").is_visible() and page.locator("#job-cancel").is_hidden()
     # The error is one line until opened; the log's multi-line entries (tracebacks) are folded.
-    one_line = "s => s.getBoundingClientRect().height < 2 * parseFloat(getComputedStyle(s).lineHeight || 16)"
+    # A computed line height of "normal" parses as NaN: then about 1.2 times the font size.
+    one_line = (
+        "s => { const st = getComputedStyle(s); "
+        "const line = parseFloat(st.lineHeight) || 1.2 * parseFloat(st.fontSize); "
+        "return s.getBoundingClientRect().height < 2 * line; }"
+    )
     assert page.eval_on_selector("#job-error summary", one_line)
     page.click("#job-error summary")
     assert page.eval_on_selector("#job-error", "d => d.open")
