@@ -40,6 +40,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable
@@ -598,6 +599,30 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
+
+def run_in_own_loop(coroutine) -> None:
+    """``asyncio.run(coroutine)``, in a thread of its own when this thread already runs an event
+    loop (a caller inside one, e.g. a test process where a browser driver left its loop running)."""
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        asyncio.run(coroutine)
+        return
+    errors: list[BaseException] = []
+
+    def target() -> None:
+        try:
+            asyncio.run(coroutine)
+        except BaseException as e:  # noqa: BLE001 - re-raised in the caller's thread
+            errors.append(e)
+
+    thread = threading.Thread(target=target, name="soak-clients")
+    thread.start()
+    thread.join()
+    if errors:
+        raise errors[0]
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Run the soak; returns the results (``server_errors`` and ``unanswered`` decide the exit)."""
     args = parse_args(argv)
@@ -644,7 +669,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         record: Record = Record()
         rss: list[tuple[float, float]] = []
         t0 = time.monotonic()
-        asyncio.run(run_clients(url, made["keys"], room, args, nerf, record, proc.pid, rss))
+        run_in_own_loop(run_clients(url, made["keys"], room, args, nerf, record, proc.pid, rss))
         results = report(record, rss, time.monotonic() - t0)
         alive = proc.poll() is None
         if alive:
