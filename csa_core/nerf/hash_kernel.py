@@ -32,6 +32,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
@@ -229,34 +230,61 @@ def _forward(x: Tensor, table: Tensor, levels: int, layout: LevelLayout) -> Tens
     return out
 
 
+def _backward(
+    x: Tensor, grad: Tensor, shape: torch.Size, levels: int, layout: LevelLayout
+) -> Tensor:
+    table_grad = torch.zeros(shape, dtype=torch.float32)
+    if x.shape[0]:
+        library().csa_hash_backward(  # type: ignore[union-attr]
+            _ptr(x), x.shape[0], _ptr(grad), shape[1], levels, grad.shape[1],
+            _ptr(layout.res), _ptr(layout.offsets), layout.num_dense, layout.mask,
+            _ptr(table_grad), torch.get_num_threads(),
+        )  # fmt: skip
+    return table_grad
+
+
+class Backend(NamedTuple):
+    """A fused encoding kernel: ``forward(x, table, levels, layout)`` -> features and
+    ``backward(x, grad, table_shape, levels, layout)`` -> the table's gradient, on contiguous
+    float32 tensors (this module's C kernel, ``hash_triton``'s Triton kernel)."""
+
+    forward: Callable[[Tensor, Tensor, int, LevelLayout], Tensor]
+    backward: Callable[[Tensor, Tensor, torch.Size, int, LevelLayout], Tensor]
+
+
 class _KernelEncode(torch.autograd.Function):
-    """``table`` features at positions ``x`` (N, 3) -> (N, levels * F); gradient to the table only."""
+    """``table`` features at positions ``x`` (N, 3) -> (N, levels * F) through a ``Backend``;
+    gradient to the table only."""
 
     @staticmethod
-    def forward(ctx, x: Tensor, table: Tensor, levels: int, layout: LevelLayout) -> Tensor:
+    def forward(ctx, x: Tensor, table: Tensor, levels: int, layout: LevelLayout, backend: Backend):
         x = x.detach().contiguous()
         ctx.save_for_backward(x)
-        ctx.levels, ctx.layout, ctx.shape = levels, layout, table.shape
-        return _forward(x, table.detach().contiguous(), levels, layout)
+        ctx.levels, ctx.layout, ctx.shape, ctx.backend = levels, layout, table.shape, backend
+        return backend.forward(x, table.detach().contiguous(), levels, layout)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         (x,) = ctx.saved_tensors
         grad = grad.contiguous().float()
-        table_grad = torch.zeros(ctx.shape, dtype=torch.float32)
-        if x.shape[0]:
-            layout = ctx.layout
-            library().csa_hash_backward(  # type: ignore[union-attr]
-                _ptr(x), x.shape[0], _ptr(grad), ctx.shape[1], ctx.levels, grad.shape[1],
-                _ptr(layout.res), _ptr(layout.offsets), layout.num_dense, layout.mask,
-                _ptr(table_grad), torch.get_num_threads(),
-            )  # fmt: skip
-        return None, table_grad, None, None
+        table_grad = ctx.backend.backward(x, grad, ctx.shape, ctx.levels, ctx.layout)
+        return None, table_grad, None, None, None
+
+
+def encode_with(
+    backend: Backend, x: Tensor, table: Tensor, levels: int, layout: LevelLayout
+) -> Tensor:
+    """Features ``(N, levels * F)`` of ``table`` at ``x`` (N, 3) in [0, 1]^3 through ``backend``;
+    differentiable with respect to ``table``."""
+    if torch.is_grad_enabled() and table.requires_grad:
+        return _KernelEncode.apply(x, table, levels, layout, backend)
+    return backend.forward(x.detach().contiguous(), table.detach().contiguous(), levels, layout)
+
+
+C_KERNEL = Backend(_forward, _backward)
 
 
 def encode(x: Tensor, table: Tensor, levels: int, layout: LevelLayout) -> Tensor:
     """Features ``(N, levels * F)`` of ``table`` at ``x`` (N, 3) in [0, 1]^3, through the kernel
     (call only where :func:`usable`); differentiable with respect to ``table``."""
-    if torch.is_grad_enabled() and table.requires_grad:
-        return _KernelEncode.apply(x, table, levels, layout)
-    return _forward(x.detach().contiguous(), table.detach().contiguous(), levels, layout)
+    return encode_with(C_KERNEL, x, table, levels, layout)

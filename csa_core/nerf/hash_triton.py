@@ -31,7 +31,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from csa_core.nerf.hash_kernel import LevelLayout
+from csa_core.nerf.hash_kernel import Backend, LevelLayout, encode_with
 
 try:  # the kernel's body refers to ``tl`` as a global, as Triton requires
     import triton.language as tl
@@ -164,31 +164,22 @@ def _forward(x: Tensor, table: Tensor, levels: int, layout: LevelLayout) -> Tens
     return out
 
 
-class _TritonEncode(torch.autograd.Function):
-    """``table`` features at positions ``x`` (N, 3) -> (N, levels * F); gradient to the table only."""
+def _backward(
+    x: Tensor, grad: Tensor, shape: torch.Size, levels: int, layout: LevelLayout
+) -> Tensor:
+    table_grad = torch.zeros(shape, dtype=torch.float32, device=x.device)
+    _launch(x, table_grad, None, grad, levels, layout, backward=True)
+    return table_grad
 
-    @staticmethod
-    def forward(ctx, x: Tensor, table: Tensor, levels: int, layout: LevelLayout) -> Tensor:
-        x = x.detach().contiguous()
-        ctx.save_for_backward(x)
-        ctx.levels, ctx.layout, ctx.shape = levels, layout, table.shape
-        return _forward(x, table.detach().contiguous(), levels, layout)
 
-    @staticmethod
-    def backward(ctx, grad: Tensor):
-        (x,) = ctx.saved_tensors
-        table_grad = torch.zeros(ctx.shape, dtype=torch.float32, device=x.device)
-        _launch(x, table_grad, None, grad.contiguous().float(), ctx.levels, ctx.layout, True)
-        return None, table_grad, None, None
+TRITON_KERNEL = Backend(_forward, _backward)
 
 
 def encode(x: Tensor, table: Tensor, levels: int, layout: LevelLayout) -> Tensor:
     """Features ``(N, levels * F)`` of ``table`` at ``x`` (N, 3) in [0, 1]^3 through the kernel
     (call where :func:`usable`, or with CPU tensors in Triton's interpreter); differentiable
     with respect to ``table``."""
-    if torch.is_grad_enabled() and table.requires_grad:
-        return _TritonEncode.apply(x, table, levels, layout)
-    return _forward(x.detach().contiguous(), table.detach().contiguous(), levels, layout)
+    return encode_with(TRITON_KERNEL, x, table, levels, layout)
 
 
 def mark_failed(error: Exception) -> None:
