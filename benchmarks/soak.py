@@ -358,14 +358,7 @@ class Client:
             if r is not None and r.status_code in (200, 201):
                 self.uploaded += 1
         elif pick < 0.65:
-            image = self.room.colors[self.rng.randrange(n)]
-            await self.call(
-                http,
-                "POST /predict",
-                "POST",
-                f"{API}/predict",
-                files={"image": ("i.png", image, "image/png")},
-            )
+            await self.predict(http)
         elif pick < 0.75:
             await self.call(http, "GET /scenes", "GET", f"{API}/scenes")
         elif pick < 0.90:
@@ -378,6 +371,17 @@ class Client:
             )
         else:
             await self.call(http, "GET /scenes/{scene}", "GET", f"{API}/scenes/{self.scene}")
+
+    async def predict(self, http: httpx.AsyncClient) -> None:
+        """One prediction of a random colour image of the room (both scopes' traffic)."""
+        image = self.room.colors[self.rng.randrange(len(self.room.colors))]
+        await self.call(
+            http,
+            "POST /predict",
+            "POST",
+            f"{API}/predict",
+            files={"image": ("i.png", image, "image/png")},
+        )
 
     async def operator_step(self, http: httpx.AsyncClient) -> None:
         n = len(self.room.colors)
@@ -402,14 +406,7 @@ class Client:
                 json=body,
             )
         elif pick < 0.55:
-            image = self.room.colors[self.rng.randrange(n)]
-            await self.call(
-                http,
-                "POST /predict",
-                "POST",
-                f"{API}/predict",
-                files={"image": ("i.png", image, "image/png")},
-            )
+            await self.predict(http)
         elif pick < 0.70:
             await self.call(http, "GET /jobs", "GET", f"{API}/jobs", params={"limit": 20})
         elif pick < 0.80:
