@@ -13,6 +13,13 @@ as Python literals (``optim.betas=(0.9,0.99)``), their items checked against the
 A nested dataclass (a section) cannot be set whole, only its fields; an optional section
 (``X | None``) can be set to ``none`` (off) or to ``default`` (on, with the defaults of its
 class, e.g. ``seg.augment=default`` before ``seg.augment.rotation_deg=10``).
+
+A section may also take keys that are not its fields, through a method
+``override_key(key, text, where) -> bool`` that returns whether it took the key (the rest of
+the dotted path below the section, and the value's text); its class attribute
+``OVERRIDE_KEYS`` names them among the valid ones when a key is unknown. The adaptation
+budget's NeRF section (``csa_core.adapt.config.NerfBudget``) takes ``config.<NerfConfig key>``
+that way, and the keys of its earlier fields.
 """
 
 from __future__ import annotations
@@ -75,11 +82,15 @@ def _apply_one(config: Any, item: str, flag: str) -> None:
         here = ".".join(parts[:depth])
         names = [f.name for f in dataclasses.fields(obj)]
         if name not in names:
+            taker = getattr(obj, "override_key", None)
+            if callable(taker) and taker(".".join(parts[depth:]), text.strip(), where):
+                return
             level = f"section {here!r}" if here else type(obj).__name__
+            valid = [*names, *getattr(obj, "OVERRIDE_KEYS", ())]
             raise CSAInputError(
                 where,
                 f"unknown key {key!r}: {level} has no field {name!r} "
-                f"(valid: {', '.join(names)})",
+                f"(valid: {', '.join(valid)})",
             )
         value = getattr(obj, name)
         if depth == len(parts) - 1:
@@ -114,11 +125,17 @@ def _apply_one(config: Any, item: str, flag: str) -> None:
         raise CSAInputError(
             where, f"{key!r} is a section and cannot be set whole{whole}; set its fields: {fields}"
         )
+    _set(obj, name, parse_value(text, tp, key, where), key, where)
+
+
+def parse_value(text: str, tp: Any, key: str, where: str) -> Any:
+    """``text`` read as a value of type ``tp``, as every ``--set`` item's value is (also for a
+    section's ``override_key``, the module docstring); a bad value is a
+    :class:`~csa_core.errors.CSAInputError` at ``where`` that names ``key``."""
     try:
-        new = _parse(text, tp)
+        return _parse(text.strip(), tp)
     except _BadValue as err:
         raise CSAInputError(where, f"bad value for {key!r}: expected {err}") from None
-    _set(obj, name, new, key, where)
 
 
 def _set(obj: Any, name: str, value: Any, key: str, where: str) -> None:

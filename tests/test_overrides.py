@@ -10,6 +10,7 @@ from typing import Literal
 
 import pytest
 
+from csa_core.adapt.config import nerf_config
 from csa_core.adapt.config import preset as adapt_preset
 from csa_core.cli.main import build_parser, main
 from csa_core.errors import CSAInputError
@@ -59,7 +60,10 @@ def test_values_are_parsed_by_the_declared_type():
     assert (config.collapse.enabled, config.pool_batchnorm, config.adabn) == (False, False, True)
     assert config.replay.buffer_size == 5 and isinstance(config.replay.buffer_size, int)
     assert config.seg.lr == 3e-5 and config.nerf.prefit_epochs == 2.5
-    assert config.nerf.rays_per_step is None
+    # nerf.rays_per_step (a field of earlier budgets) dropped cpu's item: the preset's own rays
+    assert "optim.rays_per_step=1024" not in config.nerf.overrides
+    reference = nerf_preset("reference").optim.rays_per_step
+    assert nerf_config(config.nerf).optim.rays_per_step == reference
     assert (config.joint.schedule, config.adabn_placement) == ("batch", "paper")
     assert (config.seg.device, config.nerf.preset) == ("cuda:1", "reference")
     assert adapt_preset("cpu").collapse.enabled is True  # presets stay fresh
@@ -263,7 +267,8 @@ def test_a_semantic_head_trained_after_the_fit_needs_semantic_steps():
     config = apply_overrides(
         adapt_preset("cpu"), ["nerf.semantic_steps=400", "nerf.semantics_in_fit=false"]
     )
-    assert (config.nerf.semantic_steps, config.nerf.semantics_in_fit) == (400, False)
+    semantics_in_fit = nerf_config(config.nerf).optim.semantics_in_fit
+    assert (config.nerf.semantic_steps, semantics_in_fit) == (400, False)
 
 
 def test_the_augmentation_is_set_field_by_field_and_checked():

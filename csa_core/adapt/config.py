@@ -12,9 +12,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
+from csa_core.errors import CSAInputError
+from csa_core.nerf.config import NerfConfig, build_config
+from csa_core.overrides import NONE_WORDS, apply_overrides, parse_value
 from csa_core.seg.config import AugmentConfig, official_augment
 
 MODES: tuple[str, ...] = ("gi_nl", "ni_nl", "joint")
@@ -47,16 +51,51 @@ PAPER_COTTA_SCALES = (0.5, 0.75, 1.0, 1.25, 1.5, 1.75)
 CPU_COTTA_SCALES = (0.75, 1.0, 1.5)
 
 
+# Keys of the NeRF fields the budget had before it held the NeRF config's changes as items:
+# ``--set nerf.<key>=value`` still works, as the item ``<path>=value`` added to
+# ``NerfBudget.overrides`` (``none``: the NeRF preset's own value again, the budget's items
+# for that field dropped). ``nerf.finest_resolution`` also caps the occupancy grid at
+# FINE_GRID_OCCUPANCY, as that field did.
+LEGACY_NERF_KEYS: dict[str, str] = {
+    "rays_per_step": "optim.rays_per_step",
+    "log2_table_size": "field.encoding.log2_table_size",
+    "num_levels": "field.encoding.num_levels",
+    "finest_resolution": "field.encoding.finest_resolution",
+    "semantic_grid_levels": "field.semantic_grid_levels",
+    "semantic_hidden_layers": "field.semantic_hidden_layers",
+    "semantic_detach_geometry": "field.semantic_detach_geometry",
+    "semantics_in_fit": "optim.semantics_in_fit",
+    "final_lr_fraction": "optim.final_lr_fraction",
+    "ray_batches": "optim.ray_batches",
+}
+# Occupancy cells per axis of a budget that sets its own finest resolution (``paper``,
+# ``tiny``), at most.
+FINE_GRID_OCCUPANCY = 32
+# The item key that decides the semantic-head steps' ray batch (:func:`nerf_config`).
+SEMANTIC_RAYS_KEY = "optim.semantic_rays_per_step"
+
+
+def item_key(item: str) -> str:
+    """The dotted key of a ``key=value`` override item."""
+    return item.partition("=")[0].strip()
+
+
 @dataclass
 class NerfBudget:
-    """How much NeRF work one scene gets; ``preset`` names a ``csa_core.nerf.config`` preset.
+    """How much NeRF work one scene gets, and on which NeRF config.
 
-    The fit on the network's predictions is ``prefit_steps`` steps, or ``prefit_epochs``
-    epochs when set (the whole fit in the GI+NL / NI+NL modes); joint mode's pre-fit is
-    ``joint_prefit_epochs`` epochs when set, else the same as the others'. An epoch is one
-    ray batch per training view, as in the official code (one ``rays_per_step`` batch drawn
-    from each view in turn; ``paper`` does the same, ``cpu`` draws from all views' pixels,
-    ``OptimConfig.ray_batches``): :meth:`fit_steps`.
+    The NeRF config is the NeRF preset ``preset`` (``csa_core.nerf.config``) with this
+    budget's schedule and then its ``overrides``, ``section.name=value`` items of
+    ``NerfConfig`` applied in order (``field.encoding.log2_table_size=14``): :func:`nerf_config`
+    builds it, through the one override path (``csa_core.nerf.config.build_config``).
+    ``--set nerf.config.<NerfConfig key>=value`` adds an item; ``--set nerf.overrides=(...)``
+    replaces them all, the adaptation preset's own too.
+
+    The schedule: the fit on the network's predictions is ``prefit_steps`` steps, or
+    ``prefit_epochs`` epochs when set (the whole fit in the GI+NL / NI+NL modes); joint mode's
+    pre-fit is ``joint_prefit_epochs`` epochs when set, else the same as the others'. An epoch
+    is one ray batch per training view, as in the official code (one ray batch drawn from each
+    view in turn; ``paper`` does the same with ``optim.ray_batches=per_view``): :meth:`fit_steps`.
 
     ``semantic_steps``: then steps on the semantic head alone (geometry frozen; cheap, and
     the fit's semantics lag its colours). The joint per-round schedule (``JointBudget``)
@@ -64,58 +103,40 @@ class NerfBudget:
     (colour, depth, semantics) after each round; the per-batch schedule takes one full step
     per current-scene image of each network batch.
 
-    ``ray_batches``: how the fit draws its rays (``OptimConfig.ray_batches``), and the
-    semantic-head steps after the fit (``semantic_steps``, 0: none) draw theirs the same way,
-    ``rays_per_step`` at a time at the fit's starting rate (``optim.lr``): the budget's,
-    whatever the NeRF preset says (``fast`` draws label-balanced rays and adds 300 semantic
-    steps of its own for label fusion alone; the adaptation budgets were measured without
-    them, benchmarks/results/fusion.md "Label-balanced ray draws").
-
-    The remaining fields override the preset's numbers when set: ray batch, hash table size,
-    levels and finest resolution, the semantic feature table's levels (``0``: the semantic
-    MLP reads the geometry features only), the semantic MLP's hidden layers, whether that MLP
-    reads the geometry features detached (``False``: the official head), whether the fit's
-    steps train the semantic head (``False``: only the semantic steps after the fit do;
-    ``OptimConfig.semantics_in_fit``), and the final learning rate as a fraction of the
-    first (``1.0``: a fixed rate).
+    Before its items, the budget sets what it decides whatever the NeRF preset says: the
+    fit's rays drawn uniformly from every training view (``optim.ray_batches=all``), and the
+    semantic-head steps after the fit (``semantic_steps``) drawn the same way, as many rays
+    as a fit step (``optim.rays_per_step``) at the fit's starting rate (``optim.lr``).
+    ``fast`` draws label-balanced rays and adds 300 semantic steps of its own for label fusion
+    alone; the adaptation budgets were measured without them (benchmarks/results/fusion.md
+    "Label-balanced ray draws"). An item has the last word over these as well.
     """
 
     preset: str = "fast"
+    # NerfConfig items applied after the schedule, in order (csa_core.overrides), e.g.
+    # ``("optim.rays_per_step=1024", "field.encoding.log2_table_size=14")``.
+    overrides: tuple[str, ...] = ()
     prefit_steps: int = 1500
     prefit_epochs: float | None = None
     joint_prefit_epochs: float | None = None
     semantic_steps: int = 0
     steps_per_round: int = 100
-    ray_batches: Literal["all", "per_view", "class_balanced"] = "all"
     geometry_steps_per_round: int = 0
-    rays_per_step: int | None = None
-    log2_table_size: int | None = None
-    num_levels: int | None = None
-    finest_resolution: int | None = None
-    semantic_grid_levels: int | None = None
-    semantic_hidden_layers: int | None = None
-    semantic_detach_geometry: bool | None = None
-    semantics_in_fit: bool | None = None
-    final_lr_fraction: float | None = None
-    # Any other field of the NeRF preset, as ``section.name=value`` items applied last
-    # (csa_core.overrides), e.g.
-    # ``--set "nerf.preset_overrides=('sampler.render_band_color=false',)"``.
-    preset_overrides: tuple[str, ...] = ()
     seed: int = 0
 
-    def __post_init__(self) -> None:
-        # Checked here, when the config is made or overridden, not when a scene's fit starts.
-        if self.semantics_in_fit is False and self.semantic_steps <= 0:
-            raise ValueError(
-                "NerfBudget: semantics_in_fit=False leaves the semantic head untrained unless "
-                "semantic_steps > 0"
-            )
-        if self.preset_overrides:
-            from csa_core.nerf.config import preset as nerf_preset
-            from csa_core.overrides import apply_overrides
+    # The key below ``nerf`` that is not a field (csa_core.overrides, :meth:`override_key`;
+    # the LEGACY_NERF_KEYS are taken too, and not offered).
+    OVERRIDE_KEYS: ClassVar[tuple[str, ...]] = ("config.<NerfConfig key>",)
 
-            apply_overrides(
-                nerf_preset(self.preset), self.preset_overrides, flag="--set nerf.preset_overrides"
+    def __post_init__(self) -> None:
+        self.overrides = tuple(self.overrides)
+        # Checked here, when the config is made or overridden, not when a scene's fit starts:
+        # the NeRF preset, every item, and the semantic head's training.
+        optim = nerf_config(self).optim
+        if not optim.semantics_in_fit and optim.semantic_steps <= 0:
+            raise ValueError(
+                "NerfBudget: optim.semantics_in_fit=false leaves the semantic head untrained "
+                "unless semantic_steps > 0"
             )
 
     def fit_steps(self, mode: str, views: int) -> int:
@@ -127,6 +148,65 @@ class NerfBudget:
         if epochs is None:
             return self.prefit_steps
         return max(1, math.ceil(epochs * views))
+
+    def add_overrides(self, items: Sequence[str], where: str = "NerfBudget") -> None:
+        """Add NerfConfig ``items`` after the budget's own, each checked on the NeRF config
+        the budget builds now (an error names ``where``)."""
+        items = tuple(items)
+        try:
+            apply_overrides(nerf_config(self), items)
+        except ValueError as err:  # CSAInputError too; an unknown NeRF preset
+            raise CSAInputError(where, getattr(err, "problem", str(err))) from None
+        self.overrides = (*self.overrides, *items)
+
+    def override_key(self, key: str, text: str, where: str) -> bool:
+        """Take a ``--set nerf.<key>=text`` whose key is not a field (csa_core.overrides):
+        ``config.<NerfConfig key>`` adds that item; ``preset_overrides`` (a tuple of items)
+        adds its items; the keys of :data:`LEGACY_NERF_KEYS` add the item of their path.
+        Returns False for any other key."""
+        section, _, rest = key.partition(".")
+        if section == "config" and rest:
+            self.add_overrides([f"{rest}={text}"], where)
+            return True
+        if key == "preset_overrides":
+            self.add_overrides(parse_value(text, tuple[str, ...], f"nerf.{key}", where), where)
+            return True
+        path = LEGACY_NERF_KEYS.get(key)
+        if path is None:
+            return False
+        if text.lower() in NONE_WORDS:  # the NeRF preset's own value again
+            dropped = {path}
+            if key == "finest_resolution":
+                dropped.add("sampler.occupancy_resolution")
+            self.overrides = tuple(i for i in self.overrides if item_key(i) not in dropped)
+            return True
+        items = [f"{path}={text}"]
+        if key == "finest_resolution":
+            cells = nerf_config(self).sampler.occupancy_resolution
+            items.append(f"sampler.occupancy_resolution={min(cells, FINE_GRID_OCCUPANCY)}")
+        self.add_overrides(items, where)
+        return True
+
+
+def nerf_config(budget: NerfBudget) -> NerfConfig:
+    """The NeRF config of a budget's fit: its NeRF preset, then its schedule (``prefit_steps``
+    fit steps, ``semantic_steps`` semantic-head steps at the fit's starting rate, rays drawn
+    from every training view, ``seed``), then its ``overrides`` in order
+    (``csa_core.nerf.config.build_config``). The semantic-head steps draw as many rays as a fit
+    step unless an item sets ``optim.semantic_rays_per_step``. The step's fit runs it on the
+    budget of :func:`csa_core.adapt.finetune.step_nerf_budget` (its steps for the scene)."""
+    schedule = (
+        f"optim.steps={budget.prefit_steps}",
+        "optim.ray_batches=all",
+        "optim.semantic_ray_batches=none",
+        f"optim.semantic_steps={budget.semantic_steps}",
+        "optim.semantic_lr_fraction=1.0",
+        f"seed={budget.seed}",
+    )
+    cfg = build_config(budget.preset, (*schedule, *budget.overrides), flag="nerf.overrides")
+    if SEMANTIC_RAYS_KEY not in {item_key(i) for i in budget.overrides}:
+        cfg.optim.semantic_rays_per_step = cfg.optim.rays_per_step
+    return cfg
 
 
 @dataclass
@@ -330,13 +410,14 @@ def paper() -> AdaptConfig:
             prefit_epochs=PAPER_FIT_EPOCHS,
             joint_prefit_epochs=PAPER_PREFIT_EPOCHS,
             steps_per_round=0,
-            finest_resolution=PAPER_FINEST_RESOLUTION,
-            semantic_grid_levels=0,
-            semantic_hidden_layers=1,
-            # The paper's stop-gradient: the semantic loss does not reach the geometry.
-            semantic_detach_geometry=True,
-            final_lr_fraction=1.0,
-            preset_overrides=(
+            overrides=(
+                f"field.encoding.finest_resolution={PAPER_FINEST_RESOLUTION}",
+                f"sampler.occupancy_resolution={FINE_GRID_OCCUPANCY}",
+                "field.semantic_grid_levels=0",
+                "field.semantic_hidden_layers=1",
+                # The paper's stop-gradient: the semantic loss does not reach the geometry.
+                "field.semantic_detach_geometry=true",
+                "optim.final_lr_fraction=1.0",
                 # Each step's rays from one training view, as the official code draws them.
                 "optim.ray_batches=per_view",
                 # The fixed cube [-4, 4]^3 of the official code (PAPER_FINEST_RESOLUTION's bound).
@@ -371,7 +452,7 @@ def paper_official() -> AdaptConfig:
     AdaBN step (docs/presets.md "The paper preset")."""
     config = paper()
     config.preset = "paper-official"
-    config.nerf.semantic_detach_geometry = False
+    config.nerf.add_overrides(["field.semantic_detach_geometry=false"])
     config.adabn = False
     return config
 
@@ -405,9 +486,11 @@ def cpu() -> AdaptConfig:
         nerf=NerfBudget(
             prefit_steps=300,
             steps_per_round=40,
-            rays_per_step=1024,
-            log2_table_size=14,
-            final_lr_fraction=1.0,
+            overrides=(
+                "optim.rays_per_step=1024",
+                "field.encoding.log2_table_size=14",
+                "optim.final_lr_fraction=1.0",
+            ),
         ),
         seg=SegBudget(lr=2e-5, epochs=4, augment=None),
         joint=JointBudget(rounds=2, seg_epochs_per_round=2, render_images=False),
@@ -429,10 +512,13 @@ def tiny() -> AdaptConfig:
             prefit_steps=80,
             semantic_steps=60,
             steps_per_round=10,
-            rays_per_step=256,
-            log2_table_size=12,
-            num_levels=6,
-            finest_resolution=128,
+            overrides=(
+                "optim.rays_per_step=256",
+                "field.encoding.log2_table_size=12",
+                "field.encoding.num_levels=6",
+                "field.encoding.finest_resolution=128",
+                f"sampler.occupancy_resolution={FINE_GRID_OCCUPANCY}",
+            ),
         ),
         seg=SegBudget(lr=5e-4, epochs=2),
         joint=JointBudget(rounds=2),

@@ -242,7 +242,7 @@ def step_nerf_budget(config: AdaptConfig, scene: Scene, mode: str | None = None)
     """``config.nerf`` with the fit before the pseudo-labels in steps for ``scene``: its
     epochs (:meth:`~csa_core.adapt.config.NerfBudget.fit_steps`, in ``mode``, default
     ``config.mode``) times the scene's training views.
-    :func:`~csa_core.adapt.pseudo_labels.nerf_config` of it is the NeRF config the step fits."""
+    :func:`~csa_core.adapt.config.nerf_config` of it is the NeRF config the step fits."""
     steps = config.nerf.fit_steps(mode or config.mode, len(scene.train_frames))
     return dataclasses.replace(config.nerf, prefit_steps=steps)
 

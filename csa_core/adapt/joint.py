@@ -144,9 +144,7 @@ def _per_round(
     tuner = SegFinetuner(
         model, config, rounds * per_round, batches_per_epoch(primary, secondary, config)
     )
-    nerf_trainer = NerfLabelTrainer(
-        nerf, scene, rays_per_step=config.nerf.rays_per_step, seed=config.nerf.seed
-    )
+    nerf_trainer = NerfLabelTrainer(nerf, scene, seed=config.nerf.seed)
     rendered, labels = pseudo.rendered, pseudo.labels
     for r in range(1, rounds + 1):
         kept = copy.deepcopy(model.state_dict())
@@ -228,9 +226,7 @@ def _per_batch(
         config.seg.augment,
     )
     tuner = SegFinetuner(model, config, epochs, batches_per_epoch(primary, secondary, config))
-    nerf_trainer = NerfLabelTrainer(
-        nerf, scene, rays_per_step=config.nerf.rays_per_step, seed=config.nerf.seed
-    )
+    nerf_trainer = NerfLabelTrainer(nerf, scene, seed=config.nerf.seed)
     targets = dict(pseudo.predictions)  # the NeRF's semantic targets, refreshed per batch
     nerf_labels = dict(pseudo.labels)  # the NeRF's labels of each view, as last rendered
     guarded = config.collapse.enabled

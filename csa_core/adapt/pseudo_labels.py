@@ -12,59 +12,17 @@ from dataclasses import dataclass, field
 import numpy as np
 from torch import nn
 
-from csa_core.adapt.config import NerfBudget
+from csa_core.adapt.config import NerfBudget, nerf_config
 from csa_core.data.camera import Intrinsics
 from csa_core.data.scene import NYU40_FOLDER, Frame, Scene
 from csa_core.eval.miou import ConfusionMatrix
-from csa_core.nerf.config import NerfConfig
-from csa_core.nerf.config import preset as nerf_preset
 from csa_core.nerf.fit import fit_semantic_nerf
 from csa_core.nerf.model import SemanticNerf
 from csa_core.nerf.render import render_frames
-from csa_core.overrides import apply_overrides
 from csa_core.progress import ProgressCallback, notify, sub_progress
 from csa_core.seg.predict import predict_labels
 
 PREDICTION_FOLDER = "prediction"
-
-
-def nerf_config(budget: NerfBudget) -> NerfConfig:
-    """The NeRF config of a budget: its preset with the step count, seed and the budget's
-    overrides (ray batch, hash grid, semantic head, final learning rate)."""
-    cfg = nerf_preset(budget.preset)
-    cfg.optim.steps = budget.prefit_steps
-    if budget.rays_per_step is not None:
-        cfg.optim.rays_per_step = budget.rays_per_step
-    enc = cfg.field.encoding
-    if budget.log2_table_size is not None:
-        enc.log2_table_size = budget.log2_table_size
-    if budget.num_levels is not None:
-        enc.num_levels = budget.num_levels
-    if budget.finest_resolution is not None:
-        enc.finest_resolution = budget.finest_resolution
-        cfg.sampler.occupancy_resolution = min(cfg.sampler.occupancy_resolution, 32)
-    if budget.semantic_grid_levels is not None:
-        cfg.field.semantic_grid_levels = budget.semantic_grid_levels
-    if budget.semantic_hidden_layers is not None:
-        cfg.field.semantic_hidden_layers = budget.semantic_hidden_layers
-    if budget.semantic_detach_geometry is not None:
-        cfg.field.semantic_detach_geometry = budget.semantic_detach_geometry
-    if budget.semantics_in_fit is not None:
-        cfg.optim.semantics_in_fit = budget.semantics_in_fit
-    if budget.final_lr_fraction is not None:
-        cfg.optim.final_lr_fraction = budget.final_lr_fraction
-    # How rays are drawn and the semantic-head steps after the fit (fit_semantic_nerf) are the
-    # budget's, not the preset's: at the budget's ray batch and the fit's starting rate
-    # (optim.lr), drawn as the fit's (NerfBudget docstring).
-    cfg.optim.ray_batches = budget.ray_batches
-    cfg.optim.semantic_ray_batches = None
-    cfg.optim.semantic_steps = budget.semantic_steps
-    cfg.optim.semantic_rays_per_step = cfg.optim.rays_per_step
-    cfg.optim.semantic_lr_fraction = 1.0
-    cfg.seed = budget.seed
-    if budget.preset_overrides:
-        apply_overrides(cfg, budget.preset_overrides, flag="--set nerf.preset_overrides")
-    return cfg
 
 
 def predict_frames(

@@ -112,19 +112,18 @@ register = add_nerf_commands
 def fit_config(args: argparse.Namespace) -> NerfConfig:
     """The fit's config: the preset, then ``--steps`` (the semantic steps after the fit scale
     with it: ``scaled_semantic_steps``), ``--dtype`` and ``--seed``, then the ``--set``
-    overrides (the last word). The checkpoint stores it."""
-    from csa_core.nerf.config import preset, scaled_semantic_steps
-    from csa_core.overrides import apply_overrides
+    overrides (the last word), all as items of ``build_config``. The checkpoint stores it."""
+    from csa_core.nerf.config import build_config, preset, scaled_semantic_steps
 
-    cfg = preset(args.preset)
+    flags = []
     if args.steps is not None:
-        cfg.optim.semantic_steps = scaled_semantic_steps(cfg.optim, args.steps)
-        cfg.optim.steps = args.steps
+        semantic = scaled_semantic_steps(preset(args.preset).optim, args.steps)
+        flags += [f"optim.semantic_steps={semantic}", f"optim.steps={args.steps}"]
     if args.dtype is not None:
-        cfg.storage_dtype = args.dtype
+        flags.append(f"storage_dtype={args.dtype}")
     if args.seed is not None:
-        cfg.seed = args.seed
-    return apply_overrides(cfg, args.set)
+        flags.append(f"seed={args.seed}")
+    return build_config(args.preset, [*flags, *args.set])
 
 
 def _fit(args: argparse.Namespace) -> int:

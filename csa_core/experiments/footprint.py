@@ -20,8 +20,9 @@ import numpy as np
 
 from csa_core.adapt.baselines.cotta import CoTTA
 from csa_core.adapt.baselines.mapping import build_voxel_map, mapping_memory, render_map_labels
+from csa_core.adapt.config import nerf_config
 from csa_core.adapt.methods import cotta_config, pretrain_context
-from csa_core.adapt.pseudo_labels import PREDICTION_FOLDER, nerf_config, predict_frames, with_labels
+from csa_core.adapt.pseudo_labels import PREDICTION_FOLDER, predict_frames, with_labels
 from csa_core.data.scene import Scene
 from csa_core.experiments.inputs import ExperimentInputs
 from csa_core.experiments.report import (

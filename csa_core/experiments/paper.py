@@ -32,13 +32,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from csa_core.adapt.config import AdaptConfig
+from csa_core.adapt.config import AdaptConfig, nerf_config
 from csa_core.adapt.continual import ContinualResult
 from csa_core.adapt.finetune import step_nerf_budget
 from csa_core.adapt.pseudo_labels import (
     PREDICTION_FOLDER,
     label_miou,
-    nerf_config,
     predict_frames,
     render_at_frames,
     with_labels,
@@ -153,10 +152,8 @@ def one_step_methods(tables: Sequence[str]) -> list[str]:
 
 
 def ablation_config(config: AdaptConfig, items: Sequence[str]) -> AdaptConfig:
-    """``config`` with NeRF preset overrides ``items`` added after its own (checked now)."""
-    nerf = dataclasses.replace(
-        config.nerf, preset_overrides=(*config.nerf.preset_overrides, *items)
-    )
+    """``config`` with NeRF config items ``items`` added after its own (checked now)."""
+    nerf = dataclasses.replace(config.nerf, overrides=(*config.nerf.overrides, *items))
     return dataclasses.replace(config, nerf=nerf)
 
 

@@ -17,7 +17,7 @@ from csa_core.lazy_exports import lazy_exports
 
 _EXPORTS = {
     "checkpoint": ("checkpoint_info", "load_checkpoint", "save_checkpoint"),
-    "config": ("NerfConfig", "preset"),
+    "config": ("NerfConfig", "build_config", "preset"),
     "fit": ("FitStats", "fit_semantic_nerf"),
     "model": ("SemanticNerf",),
     "rays": ("RayBank", "camera_directions", "image_rays"),

@@ -10,11 +10,13 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from dataclasses import field as _field
 from typing import Any, Literal
 
 from csa_core.data.nyu40 import NUM_CLASSES
+from csa_core.overrides import apply_overrides
 
 
 @dataclass
@@ -382,3 +384,15 @@ def preset(name: str) -> NerfConfig:
         raise ValueError(
             f"unknown NeRF preset {name!r} (choose from {', '.join(PRESETS)})"
         ) from None
+
+
+def build_config(name: str, overrides: Iterable[str] = (), flag: str = "--set") -> NerfConfig:
+    """The NeRF config of preset ``name`` with ``overrides``, ``section.name=value`` items
+    (``optim.steps=300``, ``field.encoding.log2_table_size=14``), applied in order through
+    the one override path (:func:`csa_core.overrides.apply_overrides`; an error names ``flag``
+    and the item).
+
+    Every NeRF config made from a preset name and changes to it is made here: ``csa nerf fit``
+    (its flags as items, then ``--set``), the adaptation budgets
+    (``csa_core.adapt.config.nerf_config``: the budget's schedule, then its items)."""
+    return apply_overrides(preset(name), overrides, flag=flag)

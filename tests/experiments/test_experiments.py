@@ -316,7 +316,7 @@ def test_resume_accepts_a_record_from_before_a_field_was_added_only_at_its_defau
 
     config = cpu()
     record_config = {**json.loads(json.dumps(config.to_dict())), "method": "finetune", "pretrain_scenes": []}
-    del record_config["nerf"]["preset_overrides"]  # "recorded before the field existed"
+    del record_config["nerf"]["joint_prefit_epochs"]  # "recorded before the field existed"
     parts = ("multi-step", "finetune", "adabn-on", "seed0")
     folder = tmp_path.joinpath("runs", *parts)
     folder.mkdir(parents=True)
@@ -331,7 +331,7 @@ def test_resume_accepts_a_record_from_before_a_field_was_added_only_at_its_defau
     assert ExperimentInputs.finished_run(inputs, parts, config, "mapping", b) is None
     assert ExperimentInputs.finished_run(inputs, parts, config, "finetune", b + 0.01) is None
     changed = cpu()
-    changed.nerf.preset_overrides = ("loss.free_space=0",)
+    changed.nerf.joint_prefit_epochs = 2.0
     assert ExperimentInputs.finished_run(inputs, parts, changed, "finetune", b) is None
     changed = cpu()
     changed.seg.lr = 1e-3

@@ -176,7 +176,8 @@ def test_the_budget_semantic_steps_run_inside_the_fit():
     from csa_core.adapt.config import NerfBudget
     from csa_core.adapt.pseudo_labels import nerf_config
 
-    cfg = nerf_config(NerfBudget(semantic_steps=25, rays_per_step=512, semantics_in_fit=False))
+    items = ("optim.rays_per_step=512", "optim.semantics_in_fit=false")
+    cfg = nerf_config(NerfBudget(semantic_steps=25, overrides=items))
     assert cfg.optim.semantic_steps == 25 and cfg.optim.semantic_rays_per_step == 512
     assert cfg.optim.semantics_in_fit is False
     assert nerf_config(NerfBudget()).optim.semantics_in_fit is True  # the preset's own
@@ -185,9 +186,9 @@ def test_the_budget_semantic_steps_run_inside_the_fit():
 
 def test_adaptation_budgets_draw_and_step_as_measured_not_as_the_fusion_preset():
     """``fast`` fuses labels with label-balanced draws and its own semantic steps at a tenth of
-    the rate; a budget built on it draws as ``NerfBudget.ray_batches`` says (uniform unless
-    set), runs its own semantic steps (none by default) at the fit's starting rate
-    (``optim.lr``), and its ``preset_overrides`` still come last."""
+    the rate; a budget built on it draws uniformly unless an item of its ``overrides`` sets
+    ``optim.ray_batches``, runs its own semantic steps (none by default) at the fit's starting rate
+    (``optim.lr``), and its ``overrides`` still come last."""
     from csa_core.adapt.config import NerfBudget, cpu, paper, tiny
     from csa_core.adapt.pseudo_labels import nerf_config
     from csa_core.nerf.config import preset
@@ -199,9 +200,10 @@ def test_adaptation_budgets_draw_and_step_as_measured_not_as_the_fusion_preset()
         o = nerf_config(budget).optim
         assert (o.ray_batches, o.semantic_steps) == (draws, steps)
         assert o.semantic_ray_batches is None and o.semantic_lr_fraction == 1.0
-    o = nerf_config(NerfBudget(ray_batches="class_balanced", semantic_steps=5)).optim
+    balanced = NerfBudget(overrides=("optim.ray_batches=class_balanced",), semantic_steps=5)
+    o = nerf_config(balanced).optim
     assert (o.ray_batches, o.semantic_steps, o.semantic_rays_per_step) == ("class_balanced", 5, 1024)
-    later = NerfBudget(preset_overrides=("optim.ray_batches=class_balanced", "optim.semantic_steps=7"))
+    later = NerfBudget(overrides=("optim.ray_batches=class_balanced", "optim.semantic_steps=7"))
     assert (nerf_config(later).optim.ray_batches, nerf_config(later).optim.semantic_steps) == ("class_balanced", 7)
 
 
