@@ -313,6 +313,11 @@ def label_scores(labels: dict[str, np.ndarray], *splits: tuple[str, Any]) -> dic
         out[f"class_iou_{split}"] = {
             CLASS_NAMES[c]: float(iou[c]) for c in matrix.present_classes()
         }
+        gt_pixels = matrix.counts.sum(axis=1)
+        out[f"class_share_{split}"] = {
+            CLASS_NAMES[c]: float(gt_pixels[c] / max(1, matrix.num_pixels))
+            for c in matrix.present_classes()
+        }
     return out
 
 
@@ -650,6 +655,74 @@ def class_tables(rows: list[dict[str, Any]]) -> str:
     return "\n".join(out)
 
 
+# The fusion targets (benchmarks/RESULTS.md "Targets"): the NeRF at or above the map's better
+# read-back on both splits, no class of at least MIN_CLASS_SHARE of a split's pixels more
+# than MAX_CLASS_GAP IoU points below it, fit plus the labels of every view within
+# MAX_FIT_AND_LABELS_S, a checkpoint of at most MAX_CHECKPOINT_MB.
+MIN_CLASS_SHARE = 0.01
+MAX_CLASS_GAP = 0.05
+MAX_FIT_AND_LABELS_S = 300.0
+MAX_CHECKPOINT_MB = 5.0
+
+
+def target_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """For each scene, variant and NeRF row: its mIoU margin over the map's better read-back
+    (the larger of ray cast and depth read-back, per split), its worst class against the
+    better read-back's IoU of that class (classes of at least ``MIN_CLASS_SHARE`` of the
+    split's pixels), fit plus labels seconds, checkpoint MB, and whether all targets hold."""
+    out = []
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        if "class_iou_val" in r:
+            groups.setdefault((r["scene"], r["variant"]), []).append(r)
+    for (scene, variant), group in groups.items():
+        maps = [r for r in group if r["fuser"].startswith("map")]
+        nerfs = [r for r in group if r["fuser"].startswith("NeRF")]
+        if not maps:
+            continue
+        for nerf in nerfs:
+            row: dict[str, Any] = {"scene": scene, "variant": variant, "fuser": nerf["fuser"]}
+            ok = True
+            for split in ("train", "val"):
+                best = max(m[f"miou_{split}"] for m in maps)
+                row[f"margin_{split}"] = nerf[f"miou_{split}"] - best
+                ok &= row[f"margin_{split}"] >= 0
+                worst, gap = "-", 0.0
+                for name, share in nerf[f"class_share_{split}"].items():
+                    if share < MIN_CLASS_SHARE:
+                        continue
+                    ref = max(m[f"class_iou_{split}"].get(name, 0.0) for m in maps)
+                    g = nerf[f"class_iou_{split}"].get(name, 0.0) - ref
+                    if g < gap:
+                        worst, gap = name, g
+                row[f"worst_class_{split}"] = f"{worst} {100 * gap:+.1f}"
+                ok &= gap >= -MAX_CLASS_GAP
+            views = int(sum(int(n) for n in str(group[0]["views"]).split("+")))
+            row["fit_and_labels_s"] = nerf["fit_s"] + nerf["render_s_per_view"] * views
+            row["stored_mb"] = nerf["stored_mb"]
+            ok &= row["fit_and_labels_s"] <= MAX_FIT_AND_LABELS_S
+            ok &= row["stored_mb"] <= MAX_CHECKPOINT_MB
+            row["targets"] = "met" if ok else "missed"
+            out.append(row)
+    return out
+
+
+def targets_table(rows: list[dict[str, Any]]) -> str:
+    """The targets of every NeRF row (:func:`target_rows`) as one Markdown table."""
+    lines = [
+        "| scene | variant | fuser | vs better read-back, train | val | worst class, train "
+        "| val | fit + labels s | MB | targets |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in target_rows(rows):
+        lines.append(
+            f"| {r['scene']} | {r['variant']} | {r['fuser']} | {100 * r['margin_train']:+.1f} "
+            f"| {100 * r['margin_val']:+.1f} | {r['worst_class_train']} | {r['worst_class_val']} "
+            f"| {r['fit_and_labels_s']:.0f} | {r['stored_mb']:.2f} | {r['targets']} |"
+        )
+    return "\n".join(lines)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -732,6 +805,10 @@ def main() -> None:
     print(table(rows))
     if args.per_class:
         print(class_tables(rows))
+    if any(r["fuser"].startswith("NeRF") and "class_iou_val" in r for r in rows):
+        print("\nTargets (benchmarks/RESULTS.md \"Targets\"): IoU points against the map's better "
+              "read-back; worst class among those of at least 1% of the pixels")
+        print(targets_table(rows))
     if args.json:
         write_text_atomic(args.json, json.dumps({"argv": sys.argv, "rows": rows}, indent=1))
 

@@ -36,14 +36,34 @@ class RaySamples:
         return int(self.ray_indices.shape[0])
 
 
+# Optical depths are capped at this before they are summed into transmittances: exp(-100) is
+# below float32's smallest normal number, so the transmittance behind such a sample is zero
+# either way, and the cap keeps one near-opaque sample (a density of 1e12 per metre) from
+# swamping the sums of the samples after it. Without it, ``cumsum - value`` cancelled: a
+# sample of optical depth 1e8 got a transmittance of exp(+-16) in float32, and a fit from
+# views spread at random through a room turned every sample opaque within 200 steps
+# (benchmarks/results/fusion.md "Opaque everywhere: a cancelling sum, not thin parts").
+MAX_OPTICAL_DEPTH = 100.0
+
+
+def exclusive_cumsum(values: Tensor, dim: int = -1) -> Tensor:
+    """Sum of the earlier entries along ``dim`` (0 for the first), without subtracting each
+    entry from an inclusive sum (which cancels when one entry dwarfs the rest)."""
+    inclusive = torch.cumsum(values, dim=dim)
+    zero = torch.zeros_like(inclusive.narrow(dim, 0, 1))
+    return torch.cat([zero, inclusive.narrow(dim, 0, inclusive.shape[dim] - 1)], dim=dim)
+
+
 def exclusive_sum_along_rays(values: Tensor, samples: RaySamples) -> Tensor:
-    """Per-sample sum of ``values`` over the earlier samples of the same ray."""
+    """Per-sample sum of ``values`` over the earlier samples of the same ray. Exact for the
+    dense layout; the packed one subtracts float64 running sums, so ``values`` should be
+    bounded (``render_weights`` caps optical depths at :data:`MAX_OPTICAL_DEPTH`)."""
     if samples.per_ray is not None:
         v = values.view(samples.num_rays, samples.per_ray)
-        return (torch.cumsum(v, dim=1) - v).reshape(-1)
+        return exclusive_cumsum(v, dim=1).reshape(-1)
     if values.numel() == 0:
         return values
-    # Packed: one global cumulative sum in float64 (no cancellation), minus its value at each ray's start.
+    # Packed: one global cumulative sum in float64, minus its value at each ray's start.
     inclusive = torch.cumsum(values.double(), dim=0)
     exclusive = inclusive - values.double()
     ri = samples.ray_indices
@@ -68,7 +88,8 @@ def render_weights(
         dl = dl * ray_scale[samples.ray_indices]
     sigma_dt = sigmas * dl
     alphas = 1.0 - torch.exp(-sigma_dt)
-    transmittance = torch.exp(-exclusive_sum_along_rays(sigma_dt, samples))
+    optical = exclusive_sum_along_rays(sigma_dt.clamp(max=MAX_OPTICAL_DEPTH), samples)
+    transmittance = torch.exp(-optical)
     return transmittance * alphas, transmittance, alphas
 
 

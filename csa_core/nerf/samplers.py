@@ -36,7 +36,12 @@ import torch
 from torch import Tensor, nn
 
 from csa_core.nerf.normalization import SceneBox
-from csa_core.nerf.rendering import RaySamples, render_weights
+from csa_core.nerf.rendering import (
+    MAX_OPTICAL_DEPTH,
+    RaySamples,
+    exclusive_cumsum,
+    render_weights,
+)
 from csa_core.nerf.visibility import cell_index
 
 DensityFn = Callable[[Tensor], Tensor]
@@ -360,7 +365,7 @@ class OccupancyGrid(nn.Module):
                 if isinstance(sigma, tuple):
                     sigma, features = sigma  # features: one row per evaluated sample
                 sigma_dt[keep] = sigma * step
-                excl = torch.cumsum(sigma_dt, dim=1) - sigma_dt
+                excl = exclusive_cumsum(sigma_dt.clamp(max=MAX_OPTICAL_DEPTH), dim=1)
                 weight = trans[rays, None] * torch.exp(-excl) * (1.0 - torch.exp(-sigma_dt))
                 keep &= weight >= min_weight
                 trans[rays] = trans[rays] * torch.exp(-sigma_dt.sum(dim=1))
@@ -516,12 +521,14 @@ class GridSurfaceEstimate:
             sigma_dt = torch.zeros_like(t)
             if bool(occ.any()):
                 sigma_dt[occ] = density_fn(pts[occ]) * step
-            total = tau[r, None] + torch.cumsum(sigma_dt, dim=1)
+            sigma_dt = sigma_dt.clamp(max=MAX_OPTICAL_DEPTH)
+            before = tau[r, None] + exclusive_cumsum(sigma_dt, dim=1)  # optical depth in front
+            total = before + sigma_dt
             crossed = total >= target
             done = torch.nonzero(crossed.any(dim=1)).squeeze(-1)
             kk = torch.argmax(crossed[done].to(torch.uint8), dim=1)  # the first step past it
             sd = sigma_dt[done, kk]
-            frac = ((target - (total[done, kk] - sd)) / sd.clamp_min(1e-10)).clamp(0.0, 1.0)
+            frac = ((target - before[done, kk]) / sd.clamp_min(1e-10)).clamp(0.0, 1.0)
             found[r[done]] = t[done, kk] + (frac - 0.5) * dt[r[done]]
             active[r[done]] = False
             tau[r] = total[:, -1]

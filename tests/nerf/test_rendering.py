@@ -92,3 +92,25 @@ def test_class_probabilities_are_normalised_and_do_not_carry_gradient_to_weights
     (-torch.log(probs[:, 3])).sum().backward()
     assert sigma.grad is None or sigma.grad.abs().sum() == 0
     assert logits.grad.abs().sum() > 0
+
+
+def test_a_near_opaque_sample_keeps_the_transmittance_in_front_of_it_exact():
+    # Optical depths 0.1, 0.2, 1e9, 0.3 along one ray, in both layouts and in a batch where
+    # another ray holds the huge value: the sum in front of the huge sample must not be taken
+    # as (sum including it) - (it), which cancels in float32 and gave exp(+-16).
+    for per_ray in (4, None):
+        samples = RaySamples(
+            torch.tensor([0, 0, 0, 0, 1, 1, 1, 1]),
+            torch.tensor([0.0, 1.0, 2.0, 3.0] * 2),
+            torch.tensor([1.0, 2.0, 3.0, 4.0] * 2),
+            2,
+            per_ray=per_ray,
+        )
+        sigma = torch.tensor([0.1, 0.2, 1e9, 0.3, 0.1, 0.2, 0.3, 0.4])
+        weights, trans, _ = render_weights(sigma, samples)
+        expected = torch.exp(-torch.tensor([0.0, 0.1, 0.3, 0.3 + 1e9]))
+        torch.testing.assert_close(trans[:4], expected)
+        torch.testing.assert_close(trans[4:], torch.exp(-torch.tensor([0.0, 0.1, 0.3, 0.6])))
+        # The ray is opaque at its third sample: all its weight up to there, none after.
+        torch.testing.assert_close(weights[:4].sum(), torch.tensor(1.0))
+        assert float(weights[3]) < 1e-40 and torch.isfinite(weights).all()
