@@ -36,7 +36,9 @@ POINTS: dict[str, str] = {
     "frame.blobs_written": "a frame's images are in the store, its row not yet committed (server/frame_store.py)",
     "archive.extracted": "an uploaded archive is extracted in the work folder, no frame stored yet",
     "archive.frame_stored": "one frame of an archive is stored in the open transaction, the archive not yet committed",
-    "job.computed": "a job's computation is done, its outputs not yet registered (server/jobs/context.py)",
+    "job.computed": (
+        "a job's computation is done, its outputs not yet registered (server/jobs/phases.py)"
+    ),
     "job.registering": "a job's outputs are written and flushed, the transaction that ends the job not yet committed",
 }
 ACTIONS = ("kill", "enospc")

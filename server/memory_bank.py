@@ -2,7 +2,8 @@
 
 A lineage's continual steps replay the NeRFs that its own earlier steps banked (the adapt
 job that made each version records the NeRF it banked, whatever NeRF of that scene is active
-now); :class:`StoredNerfMemory` hands them to the core's step as stored, without re-saving.
+now): :func:`lineage_nerfs` names their files on the API node, and :class:`StoredNerfMemory`
+hands them to the core's step as stored, without re-saving.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from sqlalchemy.orm import Session
 from server.artifacts import ArtifactStore
 from server.db.models import ModelVersion, NerfCheckpoint
 from server.db.models import Scene as SceneRow
+from server.jobs.phases import FileRef, existing, stored_file
 
 if TYPE_CHECKING:
     from csa_core.nerf.model import SemanticNerf
@@ -58,15 +60,20 @@ def add_nerf(
 
 @dataclass(frozen=True)
 class StoredNerf:
-    """A banked NeRF of a lineage: its scene and its checkpoint in the artifact store."""
+    """A banked NeRF of a lineage: its scene and its checkpoint file."""
 
     scene_id: int
     scene: str
-    sha256: str
+    file: FileRef
     size_bytes: int
 
 
-def lineage_nerfs(session: Session, chain: Sequence[ModelVersion], exclude_scene_id: int | None = None) -> list[StoredNerf]:
+def lineage_nerfs(
+    session: Session,
+    store: ArtifactStore,
+    chain: Sequence[ModelVersion],
+    exclude_scene_id: int | None = None,
+) -> list[StoredNerf]:
     """The NeRFs banked by the steps of a lineage (``chain``, root first), oldest scene first,
     one per scene (a scene adapted to again keeps its first place and its newest NeRF);
     ``exclude_scene_id`` leaves that scene out. A step that banked nothing (the collapse
@@ -82,18 +89,18 @@ def lineage_nerfs(session: Session, chain: Sequence[ModelVersion], exclude_scene
         row = session.get(SceneRow, sid)
         if nerf is None or row is None or NERF_FILE not in nerf.files:
             continue
-        found[sid] = StoredNerf(sid, row.name, nerf.files[NERF_FILE], int(nerf.size_bytes))
+        file = stored_file(store, nerf.files[NERF_FILE])
+        found[sid] = StoredNerf(sid, row.name, file, int(nerf.size_bytes))
     return list(found.values())
 
 
 class StoredNerfMemory:
     """A lineage's memory bank as the core's continual step uses it
-    (``csa_core.adapt.memory_bank.NerfMemory``): earlier scenes' NeRFs read from the artifact
-    store as stored, and the NeRF a step adds written once to ``folder`` (:attr:`added`) for
-    the job to register with :func:`add_nerf` when it completes."""
+    (``csa_core.adapt.memory_bank.NerfMemory``): earlier scenes' NeRFs read from their files
+    as stored, and the NeRF a step adds written once to ``folder`` (:attr:`added`) for the
+    job to register with :func:`add_nerf` when it completes."""
 
-    def __init__(self, store: ArtifactStore, entries: Sequence[StoredNerf], folder: Path):
-        self.store = store
+    def __init__(self, entries: Sequence[StoredNerf], folder: Path):
         self.entries = list(entries)
         self.folder = Path(folder)
         self.added: tuple[str, Path, int] | None = None  # (scene, file, bytes) of the new NeRF
@@ -113,7 +120,7 @@ class StoredNerfMemory:
         entry = next((e for e in self.entries if e.scene == scene), None)
         if entry is None:
             raise LookupError(f"no NeRF of scene {scene!r} in this lineage's memory bank (have: {', '.join(self.scenes) or 'none'})")
-        return load_checkpoint(self.store.open_verified(entry.sha256), device=device)
+        return load_checkpoint(existing(entry.file), device=device)
 
     def add(self, scene: str, nerf: SemanticNerf) -> int:
         from csa_core.nerf.checkpoint import save_checkpoint

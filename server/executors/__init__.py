@@ -1,7 +1,7 @@
 """Where jobs run: in the API process (``embedded``, the default) or on a Ray cluster (``ray``).
 
-``CSA_EXECUTOR`` chooses; the same job functions (``server/jobs``) run under both, through one
-context API (``server/jobs/context.py``). See docs/architecture.md, "Executors".
+``CSA_EXECUTOR`` chooses; both run the same three phases of each job kind (``gather``,
+``compute``, ``register``: ``server/jobs/phases.py``). See docs/architecture.md, "Executors".
 """
 
 from __future__ import annotations

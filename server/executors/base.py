@@ -37,26 +37,37 @@ log = logging.getLogger(__name__)
 INTERRUPTED = "interrupted"  # the job stopped without an outcome; it goes back to the queue
 
 
+def failure(e: Exception) -> tuple[str, str | None]:
+    """How an exception ends a job: (status, error), succeeded excepted. Every executor ends a
+    job through this, so a job ends the same way wherever it runs (and whichever phase raised)."""
+    if isinstance(e, JobCancelled):
+        return queue.CANCELLED, "cancelled by request"
+    if isinstance(e, JobInterrupted):
+        return INTERRUPTED, str(e)
+    if isinstance(e, CSAInputError):
+        return queue.FAILED, str(e)
+    return queue.FAILED, f"{type(e).__name__}: {e}"
+
+
+def unexpected(e: Exception) -> bool:
+    """Whether a failure is a bug or a broken input rather than a cancel, an interruption or a
+    user's mistake: its traceback goes into the job's log."""
+    return not isinstance(e, JobCancelled | JobInterrupted | CSAInputError)
+
+
 def run_job_function(ctx: JobContext, run: Callable[[JobContext], None]) -> tuple[str, str | None]:
-    """Run a job function under ``ctx`` with its thread's log records copied into the job's
-    log; returns (status, error): succeeded, failed, cancelled or :data:`INTERRUPTED`.
-    Every executor runs jobs through this, so a job ends the same way wherever it runs."""
+    """Run a job's phases (``run``) under ``ctx`` with its thread's log records copied into
+    the job's log; returns (status, error): succeeded, failed, cancelled or
+    :data:`INTERRUPTED`."""
     handler = JobLogHandler(ctx, threading.get_ident())
     logging.getLogger().addHandler(handler)
     try:
         run(ctx)
-        if ctx.completed_result is None:
-            raise RuntimeError(f"job kind {ctx.kind} returned without completing")
         return queue.SUCCEEDED, None
-    except JobCancelled:
-        return queue.CANCELLED, "cancelled by request"
-    except JobInterrupted as e:
-        return INTERRUPTED, str(e)
-    except CSAInputError as e:
-        return queue.FAILED, str(e)
     except Exception as e:  # noqa: BLE001 - any failure of the job ends the job, not the executor
-        ctx.log(traceback.format_exc(limit=20), "ERROR")
-        return queue.FAILED, f"{type(e).__name__}: {e}"
+        if unexpected(e):
+            ctx.log(traceback.format_exc(limit=20), "ERROR")
+        return failure(e)
     finally:
         logging.getLogger().removeHandler(handler)
 

@@ -1,5 +1,8 @@
 """The embedded executor (``CSA_EXECUTOR=embedded``, the default): jobs run one at a time in
-a thread of the API process, against its own database and artifact store.
+a thread of the API process, against its own database and artifact store: the job's three
+phases (``server/jobs/phases.py``) one after another in that thread, ``gather`` and
+``register`` in transactions of their own (``register`` in the one that ends the job), and
+``compute`` in between, on the Inputs and files ``gather`` named.
 
 Nothing else needs to be started. A job whose lease this executor stops renewing (the API
 process was killed) is re-queued when the API starts again (``queue.recover_stale_jobs``),
@@ -14,10 +17,12 @@ import shutil
 import time
 
 from server.db.models import Job
+from server.db.session import session_scope
 from server.executors.base import INTERRUPTED, Executor, run_job_function
 from server.jobs import queue
-from server.jobs.context import LocalJobContext
+from server.jobs.context import JobContext, LocalJobContext
 from server.jobs.kinds import KINDS, runnable_kinds
+from server.jobs.phases import ApiNode, compute_outputs, gather_inputs
 
 log = logging.getLogger(__name__)
 
@@ -70,9 +75,21 @@ class EmbeddedExecutor(Executor):
         workdir.mkdir(parents=True, exist_ok=True)
         ctx = LocalJobContext(self.services, job, self.id, workdir, self.stopping)
         self._ctx = ctx
+        kind, params, node = (
+            KINDS[job.kind],
+            dict(job.params or {}),
+            ApiNode(job.id, self.services.store),
+        )
+
+        def phases(_: JobContext) -> None:
+            with session_scope(self.services.sessions) as s:
+                inputs = gather_inputs(kind.gather, s, params, node)
+            outputs = compute_outputs(kind.compute, inputs, workdir, ctx)
+            ctx.finish(lambda s: kind.register(s, outputs, node))
+
         log.info("job %s (%s) started", job.id, job.kind)
         try:
-            status, error = run_job_function(ctx, KINDS[job.kind].run)
+            status, error = run_job_function(ctx, phases)
             if status == INTERRUPTED:
                 # Also when it was lost: if the database still gives it to this executor (the
                 # loss was only seen, not real), it must not stay running with nobody on it.

@@ -7,15 +7,17 @@ The API process is the cluster's driver. Its dispatcher thread
   model lineage one at a time, in order, through ``lineage_locks``), as many as the cluster
   has slots for (GPUs when it has any, else CPUs / ``CSA_RAY_CPUS_PER_JOB``; or
   ``CSA_RAY_MAX_RUNNING_JOBS``), so NeRF fits of different scenes run in parallel;
-- reads each job's inputs (``server/executors/bundle.py``) and submits one task
-  (:func:`server.executors.remote.run_job_task`) with the resources its kind needs: one GPU
-  for fits, adaptation and pre-training when the cluster has GPUs, CPUs otherwise;
+- runs each job's ``gather`` (``server/jobs/phases.py``) and submits one task
+  (:func:`server.executors.remote.run_job_task`) with its Inputs and the files they name and
+  the resources its kind needs: one GPU for fits, adaptation and pre-training when the
+  cluster has GPUs, CPUs otherwise; the task runs the kind's ``compute``;
 - drains the channel actor (:class:`JobChannel`, on the API's node) into the database:
   progress, status lines and log lines; a client's cancel goes back through the same channel
   and reaches the task at its next progress report; a task still running
   ``CSA_RAY_CANCEL_GRACE_SECONDS`` after the cancel is killed (``ray.cancel(force=True)``);
-- on a task's outcome, writes the files it handed back into the artifact store and registers
-  them in the same transaction that marks the job succeeded (``queue.finish``);
+- on a task's outcome, writes the files its Outputs name into a scratch folder and runs the
+  kind's ``register`` on them in the transaction that marks the job succeeded
+  (``queue.finish``), which stores them in the artifact store;
 - when a task's worker process or node dies (``WorkerCrashedError``, ``NodeDiedError``, ...),
   re-queues the job for another attempt, or fails it with the reason after
   ``CSA_MAX_ATTEMPTS`` attempts (``queue.attempt_lost``). Ray's own retries are off
@@ -40,10 +42,8 @@ import uuid
 from dataclasses import dataclass
 from typing import Any
 
-from server.db.models import Job
 from server.db.session import session_scope
-from server.executors.base import INTERRUPTED, Executor
-from server.executors.bundle import JobInputs
+from server.executors.base import INTERRUPTED, Executor, failure, unexpected
 from server.executors.remote import (
     CANCEL,
     CHANNEL_TIMEOUT_S,
@@ -51,13 +51,14 @@ from server.executors.remote import (
     RUN,
     JobSettings,
     JobSpec,
-    RegistrationContext,
     TaskOutcome,
-    restore_registration,
+    read_input_files,
     run_job_task,
+    unpack_outputs,
 )
 from server.jobs import queue
 from server.jobs.kinds import KINDS, JobKind, runnable_kinds
+from server.jobs.phases import ApiNode, function_path, gather_inputs
 
 log = logging.getLogger(__name__)
 
@@ -360,15 +361,19 @@ class RayExecutor(Executor):
             self._register_outputs(a, outcome)
 
     def _register_outputs(self, a: _Attempt, outcome: TaskOutcome) -> None:
-        """Write the task's files and run its registration, in the transaction that ends the job."""
+        """Write the files of the task's Outputs and run the kind's ``register`` on them, in
+        the transaction that ends the job."""
         folder = self.settings.resolved_work_dir / self.scratch_folder(a.job_id)
         try:
-            with session_scope(self.services.sessions) as s:
-                job = s.get(Job, a.job_id)
-                params = dict(job.params or {}) if job is not None else {}
-            context = RegistrationContext(a.job_id, a.kind, params, folder / "work", self.services.store, self.settings, self.services.sessions)
-            register = restore_registration(outcome, folder, context)
-            queue.finish(self.services.sessions, a.job_id, self.id, queue.SUCCEEDED, register=register)
+            kind, node = KINDS[a.kind], ApiNode(a.job_id, self.services.store)
+            outputs = unpack_outputs(outcome.outputs, outcome.files, folder)
+            queue.finish(
+                self.services.sessions,
+                a.job_id,
+                self.id,
+                queue.SUCCEEDED,
+                register=lambda s: kind.register(s, outputs, node),
+            )
             log.info("job %s succeeded on node %s", a.job_id, outcome.node[:12])
         except queue.LostJob:
             log.warning("job %s was recovered by another executor before it was registered", a.job_id)
@@ -426,8 +431,16 @@ class RayExecutor(Executor):
         kind = KINDS[kind_name]
         try:
             with session_scope(self.services.sessions) as s:
-                inputs = kind.inputs(s, params) if kind.inputs is not None else JobInputs()
-            files = {sha: ray.put(self.services.store.read_bytes(sha)) for sha in sorted(inputs.blobs)}
+                inputs = gather_inputs(kind.gather, s, params, ApiNode(job_id, self.services.store))
+        except Exception as e:  # noqa: BLE001 - it ends as it would under the embedded executor
+            if unexpected(e):
+                self._log(job_id, [("ERROR", traceback.format_exc(limit=20))])
+            status, error = failure(e)
+            self.end(job_id, status, error)
+            return
+        try:
+            compute = function_path(kind.compute)
+            files = {sha: ray.put(data) for sha, data in read_input_files(inputs)}
         except Exception as e:  # noqa: BLE001 - e.g. a file missing from the store
             self.end(job_id, queue.FAILED, f"could not read the job's inputs: {type(e).__name__}: {e}")
             return
@@ -435,11 +448,11 @@ class RayExecutor(Executor):
         resources = self.resources(kind)
         device = task_device(self.settings.device, resources["num_gpus"])
         settings = JobSettings(device=device, torch_threads=self.settings.torch_threads, job_log_lines=self.settings.job_log_lines)
-        spec = JobSpec(job_id, kind_name, params, attempt, token, kind.run, settings)
+        spec = JobSpec(job_id, kind_name, attempt, token, compute, settings)
         # SPREAD: jobs go to different nodes when they can, rather than next to their inputs on
         # the API's node (each job is heavy, and its inputs are small next to its work).
         options = {"name": f"csa-{kind_name}-{job_id}", "max_retries": 0, "scheduling_strategy": "SPREAD", **resources}
-        ref = self._task.options(**options).remote(spec, inputs.table_rows(), files, self._channel)
+        ref = self._task.options(**options).remote(spec, inputs, files, self._channel)
         self._attempts[token] = _Attempt(job_id, kind_name, token, ref, time.monotonic())
         wants = ", ".join(f"{k.removeprefix('num_')}={v:g}" for k, v in resources.items())
         self._log(job_id, [("INFO", f"attempt {attempt}: submitted to the Ray cluster ({wants}) with {len(files)} input file(s)")])

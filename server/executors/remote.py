@@ -1,50 +1,48 @@
-"""A job inside a Ray task: its context on the worker, and how its outputs come back.
+"""A job inside a Ray task: its context on the worker, and how its Inputs and Outputs travel.
 
 :func:`run_job_task` is the body of every Ray task the Ray executor submits. It needs no
-database and no shared disk: it gets the job's rows and files (``server/executors/bundle.py``)
-as arguments, checks each file against its checksum, and runs the same job function as the
-embedded executor under a :class:`RemoteJobContext`:
+database and no shared disk: the API node ran the job's ``gather`` and sends its Inputs (a
+plain dataclass, ``server/jobs/phases.py``) with the bytes of every file they name
+(:func:`input_files`). The task checks each file against its checksum, points the Inputs at
+its own copies, and runs the kind's ``compute`` (imported by name, :class:`JobSpec`) under a
+:class:`RemoteJobContext`, whose progress and log lines go to the executor's channel actor
+on the API node; the channel's answer says whether the job was cancelled, so a cancel
+reaches the task at its next progress report (within an epoch or a joint round).
 
-- ``ctx.session()`` reads the rows from an in-memory snapshot database, ``ctx.store`` is an
-  artifact store of the shipped files in the task's temporary folder;
-- progress and log lines go to the executor's channel actor on the API node, whose answer
-  says whether the job was cancelled (so a cancel reaches the task at its next progress
-  report, within an epoch or a joint round);
-- ``ctx.complete(register)`` keeps ``register`` for the API node. When the job function
-  returns, :func:`pack_registration` serialises it (with cloudpickle, as Ray serialises every
-  task) and collects the files it refers to in the task's folder; the context and the local
-  store are replaced by stand-ins. The API node writes those files to its own scratch folder,
-  :func:`restore_registration` rebuilds ``register`` with its paths pointing there and with
-  the API's artifact store, and the executor runs it in the same transaction that marks the
-  job succeeded. The payload comes only from this service's own tasks, which the executor
-  started; it is never user data and never stored.
+The task returns the Outputs (a plain dataclass) with the files they name, as paths relative
+to the job's folder (:func:`pack_outputs`). The API node writes those files into its own
+scratch folder and points the Outputs there (:func:`unpack_outputs`), and the executor runs
+the kind's ``register`` in the transaction that marks the job succeeded. Between the API node
+and a job's task only plain values and files travel: no pickled closure, and no registration
+function (``register`` runs on the API node, from the API's own job kinds).
 """
 
 from __future__ import annotations
 
-import contextvars
+import dataclasses
 import hashlib
-import io
 import logging
 import os
-import pickle
 import shutil
 import socket
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import Any
 
-from ray import cloudpickle
-
-from server.artifacts import ArtifactStore
-from server.db.session import session_scope
 from server.executors.base import run_job_function
-from server.executors.bundle import open_snapshot
 from server.jobs import queue
-from server.jobs.context import JobContext, Register
+from server.jobs.context import JobContext
+from server.jobs.phases import (
+    FileRef,
+    compute_outputs,
+    existing,
+    leaves,
+    replace_leaves,
+    resolve_function,
+)
 
 log = logging.getLogger(__name__)
 
@@ -64,14 +62,13 @@ class JobSettings:
     job_log_lines: int = 2000
 
 
-@dataclass
+@dataclass(frozen=True)
 class JobSpec:
     job_id: int
     kind: str
-    params: dict[str, Any]
     attempt: int
     token: str  # names this attempt on the channel
-    run: Callable[[JobContext], None]
+    compute: str  # the kind's compute, as server.jobs.phases.function_path names it
     settings: JobSettings
 
 
@@ -80,33 +77,22 @@ class TaskOutcome:
     status: str  # succeeded, failed, cancelled or interrupted
     error: str | None
     node: str
-    registration: bytes | None = None
-    files: dict[str, bytes] = field(default_factory=dict)  # path under the task folder -> bytes
+    outputs: Any = None  # the kind's Outputs, their paths relative to the job's folder
+    files: dict[str, tuple[str, bytes]] = field(default_factory=dict)  # path -> (sha256, bytes)
     logs: list[tuple[str, str]] = field(default_factory=list)
 
 
 class RemoteJobContext(JobContext):
     """A job's context inside a Ray task (see the module's docstring)."""
 
-    def __init__(self, spec: JobSpec, root: Path, store: ArtifactStore, sessions, channel: Any):
-        super().__init__(spec.job_id, spec.kind, spec.params, root / "work")
+    def __init__(self, spec: JobSpec, workdir: Path, channel: Any):
+        super().__init__(spec.job_id, spec.kind, workdir)
         self.spec = spec
-        self.root = root
-        self._store = store
-        self._sessions = sessions
         self.channel = channel
-        self.registration: Register | None = None
 
     @property
     def settings(self) -> JobSettings:
         return self.spec.settings
-
-    @property
-    def store(self) -> ArtifactStore:
-        return self._store
-
-    def session(self):
-        return session_scope(self._sessions)
 
     def _send(self, progress: float | None, message: str | None, logs: list[tuple[str, str]]) -> None:
         import ray
@@ -133,124 +119,103 @@ class RemoteJobContext(JobContext):
         elif state == LOST:
             self.lost.set()
 
-    def _register(self, register: Register) -> dict[str, Any]:
-        self.registration = register
-        return {}
-
     def pending_logs(self) -> list[tuple[str, str]]:
         with self._lock:
             pending, self._pending_logs = self._pending_logs, []
         return pending
 
 
-# -- the registration, from the task to the API node ---------------------------------------
-
-_RESTORE: contextvars.ContextVar[_Restore] = contextvars.ContextVar("csa_restore_registration")
+# -- Inputs, from the API node to the task ---------------------------------------------------
 
 
-@dataclass
-class _Restore:
-    folder: Path
-    stand_ins: dict[str, Any]
+def input_files(inputs: Any) -> dict[str, Path]:
+    """The files an Inputs names (checksum -> path on the API node), each once."""
+    return {ref.sha256: Path(ref.path) for ref in leaves(inputs, FileRef)}
 
 
-def _under(folder: Path, relative: str) -> Path:
-    rel = PurePath(relative)
-    if rel.is_absolute() or ".." in rel.parts:
-        raise ValueError(f"a task path must be relative and stay inside the task folder: {relative!r}")
-    return folder / rel
+def read_input_files(inputs: Any) -> Iterator[tuple[str, bytes]]:
+    """(checksum, bytes) of every file an Inputs names, one file at a time
+    (``ArtifactMissing`` for a file that is not there)."""
+    for sha, path in sorted(input_files(inputs).items()):
+        yield sha, existing(FileRef(path, sha)).read_bytes()
 
 
-def _task_path(relative: str) -> Path:
-    """A path of the task's folder, on the API node: the same place under its scratch folder."""
-    return _under(_RESTORE.get().folder, relative)
-
-
-def _stand_in(name: str) -> Any:
-    return _RESTORE.get().stand_ins[name]
-
-
-class _RegistrationPickler(cloudpickle.Pickler):
-    """cloudpickle, with paths under the task folder made relative (the files they name are
-    collected in :attr:`files`) and named objects replaced by stand-ins."""
-
-    def __init__(self, file: io.BytesIO, root: Path, stand_ins: dict[int, str]):
-        super().__init__(file, protocol=pickle.HIGHEST_PROTOCOL)
-        self.root = root.resolve()
-        self.stand_ins = stand_ins
-        self.files: set[str] = set()
-
-    def reducer_override(self, obj: Any) -> Any:
-        name = self.stand_ins.get(id(obj))
-        if name is not None:
-            return _stand_in, (name,)
-        if isinstance(obj, PurePath) and Path(obj).is_absolute():
-            path = Path(obj).resolve()
-            if path.is_relative_to(self.root):
-                relative = path.relative_to(self.root).as_posix()
-                if path.is_file():
-                    self.files.add(relative)
-                return _task_path, (relative,)
-        return super().reducer_override(obj)
-
-
-def pack_registration(ctx: RemoteJobContext) -> tuple[bytes, dict[str, bytes]]:
-    """The job's ``register`` as bytes, and the task-folder files it refers to."""
-    assert ctx.registration is not None
-    buf = io.BytesIO()
-    pickler = _RegistrationPickler(buf, ctx.root, {id(ctx): "context", id(ctx.store): "store"})
-    pickler.dump(ctx.registration)
-    files = {rel: (ctx.root / rel).read_bytes() for rel in sorted(pickler.files)}
-    return buf.getvalue(), files
-
-
-@dataclass
-class RegistrationContext:
-    """What ``register`` sees as ``ctx`` on the API node."""
-
-    job_id: int
-    kind: str
-    params: dict[str, Any]
-    workdir: Path
-    store: ArtifactStore
-    settings: Any
-    sessions: Any
-
-    def session(self):
-        return session_scope(self.sessions)
-
-
-def restore_registration(outcome: TaskOutcome, folder: Path, context: RegistrationContext) -> Register:
-    """Write the outcome's files under ``folder`` and rebuild its ``register``."""
-    assert outcome.registration is not None
-    for relative, data in outcome.files.items():
-        dest = _under(folder, relative)
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        dest.write_bytes(data)
-    token = _RESTORE.set(_Restore(folder, {"context": context, "store": context.store}))
-    try:
-        return pickle.loads(outcome.registration)
-    finally:
-        _RESTORE.reset(token)
-
-
-# -- the task ------------------------------------------------------------------------------
-
-
-def _unpack_files(store: ArtifactStore, files: dict[str, Any]) -> None:
-    """Fetch the shipped files from the object store into ``store``, each checked against its
-    checksum (a file that changed on the way fails the job instead of poisoning it)."""
+def _unpack_files(folder: Path, files: dict[str, Any]) -> dict[str, Path]:
+    """Fetch the shipped files from the object store into ``folder``, each checked against its
+    checksum (a file that changed on the way fails the job instead of poisoning it); returns
+    checksum -> path."""
     import ray
 
+    folder.mkdir(parents=True, exist_ok=True)
+    local: dict[str, Path] = {}
     shas = sorted(files)
     for i in range(0, len(shas), _FETCH_CHUNK):
         chunk = shas[i : i + _FETCH_CHUNK]
         for sha, data in zip(chunk, ray.get([files[s] for s in chunk]), strict=True):
             if hashlib.sha256(data).hexdigest() != sha:
                 raise OSError(f"artifact {sha[:12]} arrived with a different checksum")
-            dest = store.path_of(sha)
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            dest.write_bytes(data)
+            local[sha] = folder / sha
+            local[sha].write_bytes(data)
+    return local
+
+
+def localize_inputs(inputs: Any, local: dict[str, Path]) -> Any:
+    """``inputs`` with each file pointing at the task's copy (checksum -> path)."""
+    def moved(ref: FileRef) -> FileRef:
+        return dataclasses.replace(ref, path=local[ref.sha256])
+
+    return replace_leaves(inputs, FileRef, moved)
+
+
+# -- Outputs, from the task to the API node --------------------------------------------------
+
+
+def _under(folder: Path, relative: str) -> Path:
+    rel = PurePath(relative)
+    if rel.is_absolute() or ".." in rel.parts:
+        raise ValueError(
+            f"a task path must be relative and stay inside the task folder: {relative!r}"
+        )
+    return folder / rel
+
+
+def pack_outputs(outputs: Any, workdir: Path) -> tuple[Any, dict[str, tuple[str, bytes]]]:
+    """``outputs`` with its paths made relative to ``workdir``, and the files they name
+    (relative path -> (sha256, bytes)). Every path must name a file under ``workdir``
+    (``server.jobs.phases.compute_outputs`` checked it)."""
+    root = workdir.resolve()
+    files: dict[str, tuple[str, bytes]] = {}
+
+    def relative(path: PurePath) -> Path:
+        rel = Path(path).resolve().relative_to(root).as_posix()
+        if rel not in files:
+            data = Path(path).read_bytes()
+            files[rel] = (hashlib.sha256(data).hexdigest(), data)
+        return Path(rel)
+
+    return replace_leaves(outputs, PurePath, relative), files
+
+
+def unpack_outputs(outputs: Any, files: dict[str, tuple[str, bytes]], folder: Path) -> Any:
+    """On the API node: write a task's files under ``folder`` (each checked against its
+    checksum) and return its ``outputs`` with their paths pointing there."""
+    for relative, (sha, data) in files.items():
+        dest = _under(folder, relative)
+        if hashlib.sha256(data).hexdigest() != sha:
+            raise OSError(f"output {relative} arrived with a different checksum")
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        dest.write_bytes(data)
+
+    def absolute(path: PurePath) -> Path:
+        relative = PurePath(path).as_posix()
+        if relative not in files:
+            raise ValueError(f"the outputs name {relative!r}, which the task did not send")
+        return _under(folder, relative)
+
+    return replace_leaves(outputs, PurePath, absolute)
+
+
+# -- the task ------------------------------------------------------------------------------
 
 
 def task_folder(job_id: int, parent: Path | None = None) -> Path:
@@ -281,8 +246,9 @@ def remove_dead_task_folders(parent: Path | None = None) -> list[Path]:
     return removed
 
 
-def run_job_task(spec: JobSpec, rows: dict[str, list[dict[str, Any]]], files: dict[str, Any], channel: Any) -> TaskOutcome:
-    """The body of a Ray task: run one attempt of a job and hand back its outcome."""
+def run_job_task(spec: JobSpec, inputs: Any, files: dict[str, Any], channel: Any) -> TaskOutcome:
+    """The body of a Ray task: run the compute phase of one attempt of a job and hand back its
+    outcome."""
     import ray
 
     node = ray.get_runtime_context().get_node_id()
@@ -290,29 +256,34 @@ def run_job_task(spec: JobSpec, rows: dict[str, list[dict[str, Any]]], files: di
         log.warning("removed %s, the folder of a task whose process was killed", folder)
     root = task_folder(spec.job_id)
     try:
-        store = ArtifactStore(root / "inputs")
-        ctx = RemoteJobContext(spec, root, store, open_snapshot(rows), channel)
+        ctx = RemoteJobContext(spec, root / "work", channel)
         ctx.workdir.mkdir()
         import torch
 
         logging.getLogger("csa_core").setLevel(logging.INFO)  # the core's progress lines reach the job's log
         torch.set_num_threads(spec.settings.torch_threads or max(1, int(ray.get_runtime_context().get_assigned_resources().get("CPU", 1))))
         where = f"running on Ray node {node[:12]} (pid {os.getpid()}, attempt {spec.attempt})"
+        computed: list[Any] = []
 
         def job(ctx: JobContext) -> None:
             ctx.log(where)
             ctx.progress(0.0, where, force=True)  # a job cancelled while it waited stops here
-            _unpack_files(store, files)
-            ctx.log(f"received {len(files)} input file(s) and {sum(len(r) for r in rows.values())} database row(s)")
-            spec.run(ctx)
+            local = _unpack_files(root / "inputs", files)
+            ctx.log(f"received {len(files)} input file(s)")
+            compute = resolve_function(spec.compute)
+            mine = localize_inputs(inputs, local)
+            computed.append(compute_outputs(compute, mine, ctx.workdir, ctx))
 
         status, error = run_job_function(ctx, job)
         outcome = TaskOutcome(status, error, node)
-        if status == "succeeded":
+        if status == queue.SUCCEEDED:
             try:
-                outcome.registration, outcome.files = pack_registration(ctx)
-            except Exception as e:  # noqa: BLE001 - a registration that cannot travel fails the job
-                outcome.status, outcome.error = "failed", f"could not send the registration to the API node: {type(e).__name__}: {e}"
+                outcome.outputs, outcome.files = pack_outputs(computed[0], ctx.workdir)
+            except Exception as e:  # noqa: BLE001 - outputs that cannot travel fail the job
+                outcome.status, outcome.error = (
+                    queue.FAILED,
+                    f"could not send the outputs to the API node: {type(e).__name__}: {e}",
+                )
         outcome.logs = ctx.pending_logs()
         return outcome
     finally:

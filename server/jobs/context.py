@@ -1,14 +1,11 @@
-"""What a running job sees: its parameters, a scratch folder, its inputs, progress, logging,
-cancellation and the registration of its outputs.
+"""What a job's ``compute`` phase sees: progress, logging, cancellation and its settings.
 
-A job function (``server/jobs/*.py``) sees one API whichever executor runs it:
-``ctx.params``, ``ctx.workdir``, ``ctx.settings``, ``ctx.session()`` and ``ctx.store`` to
-read its inputs, ``ctx.progress`` / ``ctx.core_progress`` / ``ctx.log``, ``ctx.check()``, and
-``ctx.complete(register)`` with a function that registers its outputs in one transaction.
-:class:`LocalJobContext` serves it from this process's database and artifact store (the
-embedded executor); ``server.executors.remote.RemoteJobContext`` serves it inside a Ray task
-from a bundle of inputs read ahead by the API node, and sends progress, logs and the
-registration back to it.
+``compute(inputs, workdir, ctx)`` (``server/jobs/phases.py``) gets a :class:`JobContext`:
+``ctx.progress`` / ``ctx.core_progress`` / ``ctx.log``, ``ctx.check()`` and ``ctx.settings``
+(the device and thread count); it has no database session and no artifact store.
+:class:`LocalJobContext` reports to this process's database (the embedded executor);
+``server.executors.remote.RemoteJobContext`` reports from inside a Ray task through a channel
+actor on the API node.
 
 Cancellation is cooperative: :meth:`JobContext.check` (called by :meth:`progress` and from
 the core library's callbacks) raises :class:`JobCancelled` once a cancel was requested, or
@@ -22,22 +19,17 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
 from sqlalchemy.orm import Session
 
-from server import faults
 from server.db.models import Job
-from server.db.session import session_scope
 from server.jobs import queue
 from server.services import Services
 
 _PROGRESS_EVERY = 0.5  # seconds between progress reports
 _LOG_FLUSH_EVERY = 1.0
-
-Register = Callable[[Session], dict[str, Any]]
 
 
 class JobCancelled(Exception):
@@ -51,12 +43,13 @@ class JobInterrupted(Exception):
 class JobContext:
     """The part every executor shares: throttled progress, buffered logs, cancellation.
     Subclasses implement :meth:`_send` (where progress and logs go, and whether a cancel was
-    asked), :meth:`_register`, :meth:`session`, :attr:`store` and :attr:`settings`."""
+    asked) and :attr:`settings`."""
 
-    def __init__(self, job_id: int, kind: str, params: dict[str, Any], workdir: Path, stopping: threading.Event | None = None):
+    def __init__(
+        self, job_id: int, kind: str, workdir: Path, stopping: threading.Event | None = None
+    ):
         self.job_id = job_id
         self.kind = kind
-        self.params: dict[str, Any] = dict(params or {})
         self.workdir = workdir
         self._stopping = stopping or threading.Event()
         self.cancel_requested = threading.Event()
@@ -65,27 +58,16 @@ class JobContext:
         self._pending_logs: list[tuple[str, str]] = []
         self._last_log_flush = 0.0
         self._lock = threading.Lock()
-        self.completed_result: dict[str, Any] | None = None
 
     # -- what each executor provides -----------------------------------------------------
 
     @property
     def settings(self) -> Any:
-        raise NotImplementedError
-
-    @property
-    def store(self) -> Any:
-        raise NotImplementedError
-
-    def session(self) -> AbstractContextManager[Session]:
-        """A session on the job's inputs (``with ctx.session() as s: ...``)."""
+        """What a job reads of the settings: ``device``, ``torch_threads``."""
         raise NotImplementedError
 
     def _send(self, progress: float | None, message: str | None, logs: list[tuple[str, str]]) -> None:
         """Deliver progress and log lines; set :attr:`cancel_requested` / :attr:`lost`."""
-        raise NotImplementedError
-
-    def _register(self, register: Register) -> dict[str, Any]:
         raise NotImplementedError
 
     # -- what a job calls ----------------------------------------------------------------
@@ -133,35 +115,19 @@ class JobContext:
         if pending or progress is not None or message is not None:
             self._send(progress, message, pending)
 
-    def complete(self, register: Register) -> dict[str, Any]:
-        """Register the job's outputs and mark it succeeded, in one transaction."""
-        self.check()
-        self.flush_logs()
-        faults.point("job.computed")
-        self.completed_result = self._register(register)
-        return self.completed_result
-
 
 class LocalJobContext(JobContext):
-    """A job run by the embedded executor: reads, progress and registration go straight to
-    this process's database and artifact store."""
+    """A job run by the embedded executor: progress and log lines go straight to this
+    process's database, and :meth:`finish` registers the outputs there."""
 
     def __init__(self, services: Services, job: Job, owner: str, workdir: Path, stopping: threading.Event):
-        super().__init__(job.id, job.kind, job.params, workdir, stopping)
+        super().__init__(job.id, job.kind, workdir, stopping)
         self.services = services
         self.owner = owner
 
     @property
     def settings(self):
         return self.services.settings
-
-    @property
-    def store(self):
-        return self.services.store
-
-    def session(self):
-        """A session that commits on success."""
-        return session_scope(self.services.sessions)
 
     def _send(self, progress: float | None, message: str | None, logs: list[tuple[str, str]]) -> None:
         try:
@@ -170,7 +136,9 @@ class LocalJobContext(JobContext):
         except queue.LostJob:
             self.lost.set()
 
-    def _register(self, register: Register) -> dict[str, Any]:
+    def finish(self, register: Callable[[Session], dict[str, Any]]) -> dict[str, Any]:
+        """Run ``register`` in the transaction that marks the job succeeded
+        (``queue.finish``); :class:`JobInterrupted` when this executor lost the job."""
         try:
             result = queue.finish(self.services.sessions, self.job_id, self.owner, queue.SUCCEEDED, register=register)
         except queue.LostJob as e:

@@ -2,12 +2,16 @@
 
 The labels fused into the NeRF are the current model's predictions (the method), the
 uploaded ground truth (an oracle, for checks) or none. The fit, checkpoint and quality
-numbers come from ``csa_core.nerf``.
+numbers come from ``csa_core.nerf``. ``gather`` names the scene's frames (and the model's
+checkpoint for predictions), ``compute`` fits and saves the NeRF, ``register`` makes it the
+scene's active memory-bank entry.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -17,7 +21,18 @@ from server import capabilities
 from server.db.models import Job
 from server.errors import invalid, not_available
 from server.jobs.context import JobContext
-from server.jobs.inputs import check_size, load_scene, model_file, parse_size, torch_device
+from server.jobs.inputs import (
+    ModelInput,
+    SceneInput,
+    check_size,
+    gather_model,
+    gather_scene,
+    load_scene,
+    model_file,
+    parse_size,
+    torch_device,
+)
+from server.jobs.phases import ApiNode
 from server.lookups import get_model, get_scene
 from server.memory_bank import NERF_FILE, add_nerf
 from server.schemas.jobs import FitNerfParams
@@ -65,15 +80,41 @@ def prepare(session: Session, params: FitNerfParams, job: Job) -> tuple[dict[str
     return normalized, None
 
 
-def run(ctx: JobContext) -> None:
+@dataclass
+class FitNerfInputs:
+    params: dict[str, Any]  # prepare's parameters
+    scene: SceneInput
+    model: ModelInput | None  # the version that predicts the labels (labels=predictions)
+
+
+@dataclass
+class FitNerfOutputs:
+    scene_id: int
+    nerf: Path
+    preset: str
+    labels_source: str
+    quality: dict[str, Any]
+
+
+def gather(session: Session, params: dict[str, Any], node: ApiNode) -> FitNerfInputs:
+    scene = gather_scene(session, node.store, params["scene_id"])
+    model = (
+        gather_model(session, node.store, params["model_id"])
+        if params["labels"] == "predictions"
+        else None
+    )
+    return FitNerfInputs(dict(params), scene, model)
+
+
+def compute(inputs: FitNerfInputs, workdir: Path, ctx: JobContext) -> FitNerfOutputs:
     from csa_core.nerf.checkpoint import save_checkpoint
     from csa_core.nerf.config import preset
     from csa_core.nerf.fit import fit_semantic_nerf
 
-    p = ctx.params
+    p = inputs.params
     size = parse_size(p.get("size"))
     ctx.progress(0.0, "reading the scene")
-    scene = load_scene(ctx, p["scene_id"], ground_truth=p["labels"] == "ground_truth", size=size)
+    scene = load_scene(inputs.scene, workdir, ground_truth=p["labels"] == "ground_truth", size=size)
     label_folder: str | None = None
     source = p["labels"]
     if p["labels"] == "ground_truth":
@@ -81,13 +122,15 @@ def run(ctx: JobContext) -> None:
     elif p["labels"] == "predictions":
         from csa_core.seg import load_checkpoint, predict_scene
 
-        path, model = model_file(ctx, p["model_id"])
-        net, card = load_checkpoint(path, device=torch_device(ctx) or "cpu")
-        ctx.progress(0.02, f"predicting labels with {model.name}")
+        assert inputs.model is not None
+        net, card = load_checkpoint(
+            model_file(inputs.model, workdir), device=torch_device(ctx) or "cpu"
+        )
+        ctx.progress(0.02, f"predicting labels with {inputs.model.name}")
         preds = predict_scene(net, scene, split="train", device=torch_device(ctx), size=tuple(card.input_size) if card.input_size else None)
         for frame in scene.train_frames:
             frame.labels[PREDICTIONS_FOLDER] = preds[frame.name]
-        label_folder, source = PREDICTIONS_FOLDER, f"predictions:{model.name}"
+        label_folder, source = PREDICTIONS_FOLDER, f"predictions:{inputs.model.name}"
         del net
 
     config = preset(p["preset"])
@@ -112,14 +155,28 @@ def run(ctx: JobContext) -> None:
         on_progress=ctx.core_progress(0.05, 0.95),
     )
     ctx.check()
-    out = ctx.workdir / NERF_FILE
+    out = workdir / NERF_FILE
     save_checkpoint(nerf, out)
     ctx.progress(0.96, "rendering the validation views", force=True)
     quality = {"preset": p["preset"], "train_psnr": _finite(stats.final_psnr), "final_loss": _finite(stats.final_loss), "fit_seconds": round(stats.seconds, 2), "steps": stats.steps}
     quality |= held_out_quality(nerf, scene)
+    return FitNerfOutputs(inputs.scene.id, out, p["preset"], source, quality)
 
-    def register(s: Session) -> dict[str, Any]:
-        entry = add_nerf(s, ctx.store, p["scene_id"], out, job_id=ctx.job_id, preset=p["preset"], labels_source=source, quality=quality)
-        return {"nerf_id": entry.id, "scene_id": p["scene_id"], "size_bytes": entry.size_bytes, "quality": quality}
 
-    ctx.complete(register)
+def register(s: Session, outputs: FitNerfOutputs, node: ApiNode) -> dict[str, Any]:
+    entry = add_nerf(
+        s,
+        node.store,
+        outputs.scene_id,
+        outputs.nerf,
+        job_id=node.job_id,
+        preset=outputs.preset,
+        labels_source=outputs.labels_source,
+        quality=outputs.quality,
+    )
+    return {
+        "nerf_id": entry.id,
+        "scene_id": outputs.scene_id,
+        "size_bytes": entry.size_bytes,
+        "quality": outputs.quality,
+    }

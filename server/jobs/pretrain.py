@@ -1,8 +1,13 @@
-"""``pretrain``: train a new segmentation network on labelled scenes; a new lineage root."""
+"""``pretrain``: train a new segmentation network on labelled scenes; a new lineage root.
+
+``gather`` names the training and validation scenes, ``compute`` trains and saves the network,
+``register`` adds it as the root version of the job's lineage."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy.orm import Session
@@ -10,7 +15,8 @@ from sqlalchemy.orm import Session
 from server.db.models import Job
 from server.errors import conflict, invalid
 from server.jobs.context import JobContext
-from server.jobs.inputs import check_size, load_scene, torch_device
+from server.jobs.inputs import SceneInput, check_size, gather_scene, load_scene, torch_device
+from server.jobs.phases import ApiNode
 from server.lookups import get_scenes, require_ground_truth
 from server.registry import register_checkpoint, root_conflict
 from server.schemas.jobs import PretrainParams
@@ -53,23 +59,47 @@ def prepare(session: Session, params: PretrainParams, job: Job) -> tuple[dict[st
     return normalized, lineage
 
 
-def run(ctx: JobContext) -> None:
+@dataclass
+class PretrainInputs:
+    params: dict[str, Any]  # prepare's parameters
+    scenes: list[SceneInput]
+    val_scenes: list[SceneInput]
+
+
+@dataclass
+class PretrainOutputs:
+    checkpoint: Path
+    name: str
+    arch: str
+    metrics: dict[str, Any]
+    meta: dict[str, Any]
+    make_current: bool | None
+
+
+def gather(session: Session, params: dict[str, Any], node: ApiNode) -> PretrainInputs:
+    scenes = [gather_scene(session, node.store, sid) for sid in params["scene_ids"]]
+    val = [gather_scene(session, node.store, sid) for sid in params["val_scene_ids"]]
+    return PretrainInputs(dict(params), scenes, val)
+
+
+def compute(inputs: PretrainInputs, workdir: Path, ctx: JobContext) -> PretrainOutputs:
     from csa_core.seg import PretrainConfig, TrainConfig, pretrain
 
-    p = ctx.params
+    p = inputs.params
     size = (int(p["size"][0]), int(p["size"][1]))
     scenes, val = [], []
-    ids = p["scene_ids"] + p["val_scene_ids"]
-    for i, sid in enumerate(ids):
-        ctx.progress(0.1 * i / len(ids), f"reading scene {sid}")
-        (scenes if i < len(p["scene_ids"]) else val).append(load_scene(ctx, sid, ground_truth=True, size=size))
+    stored = inputs.scenes + inputs.val_scenes
+    for i, scene in enumerate(stored):
+        ctx.progress(0.1 * i / len(stored), f"reading scene {scene.id}")
+        read = load_scene(scene, workdir, ground_truth=True, size=size)
+        (scenes if i < len(inputs.scenes) else val).append(read)
     config = PretrainConfig(
         arch=p["arch"],
         size=size,
         train=TrainConfig(epochs=p["epochs"], batch_size=p["batch_size"], lr=p["lr"], seed=p["seed"], device=torch_device(ctx), progress=False),
     )
     ctx.progress(0.1, f"training {p['arch']} for {p['epochs']} epoch(s)", force=True)
-    out = ctx.workdir / "model.safetensors"
+    out = workdir / "model.safetensors"
     _, result = pretrain(scenes, config, out=out, val_scenes=val or None, on_progress=ctx.core_progress(0.1, 0.95))
     ctx.progress(0.95, "registering the model", force=True)
     score = result.best_score
@@ -79,21 +109,27 @@ def run(ctx: JobContext) -> None:
         "best_epoch": result.best_epoch,
         "train_seconds": round(result.seconds, 2),
     }
+    meta = {"task": "pretrain", "scene_ids": p["scene_ids"], "size": p["size"]}
+    return PretrainOutputs(out, p["name"], p["arch"], metrics, meta, p["make_current"])
 
-    def register(s: Session) -> dict[str, Any]:
-        job = s.get(Job, ctx.job_id)
-        model = register_checkpoint(
-            s,
-            ctx.store,
-            out,
-            name=p["name"],
-            lineage=job.lineage if job and job.lineage else p["name"],
-            arch=p["arch"],
-            job_id=ctx.job_id,
-            metrics=metrics,
-            meta={"task": "pretrain", "scene_ids": p["scene_ids"], "size": p["size"]},
-            make_current=p["make_current"],
-        )
-        return {"model_id": model.id, "model": model.name, "lineage": model.lineage, "metrics": metrics}
 
-    ctx.complete(register)
+def register(s: Session, outputs: PretrainOutputs, node: ApiNode) -> dict[str, Any]:
+    job = s.get(Job, node.job_id)
+    model = register_checkpoint(
+        s,
+        node.store,
+        outputs.checkpoint,
+        name=outputs.name,
+        lineage=job.lineage if job and job.lineage else outputs.name,
+        arch=outputs.arch,
+        job_id=node.job_id,
+        metrics=outputs.metrics,
+        meta=outputs.meta,
+        make_current=outputs.make_current,
+    )
+    return {
+        "model_id": model.id,
+        "model": model.name,
+        "lineage": model.lineage,
+        "metrics": outputs.metrics,
+    }

@@ -15,12 +15,16 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 import uvicorn
 
 from client import CSAClient
 from server.app import create_app
+from server.jobs.kinds import JobKind
+from server.jobs.phases import ApiNode, Compute
+from server.schemas.jobs import EvaluateParams
 from server.settings import Settings
 from tests.pg import PostgresDatabases, PostgresUnavailable, in_ci, open_postgres
 
@@ -153,3 +157,42 @@ def synth_scene(tmp_path_factory) -> Path:
 
     (path,) = synthesize(tmp_path_factory.mktemp("synth"), scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=3)
     return path
+
+
+# -- job kinds of tests ----------------------------------------------------------------------
+
+
+@dataclass
+class ParamsInputs:
+    """A test kind's Inputs: its job's parameters."""
+
+    params: dict[str, Any]
+
+
+@dataclass
+class ResultOutputs:
+    """A test kind's Outputs: the job's result."""
+
+    result: dict[str, Any]
+
+
+def gather_params(session, params: dict[str, Any], node: ApiNode) -> ParamsInputs:
+    return ParamsInputs(dict(params))
+
+
+def register_result(session, outputs: ResultOutputs, node: ApiNode) -> dict[str, Any]:
+    return outputs.result
+
+
+def job_kind(name: str, compute: Compute) -> JobKind:
+    """A job kind for tests: its Inputs are its parameters, ``compute`` makes its result."""
+    return JobKind(
+        name,
+        "test job",
+        EvaluateParams,
+        (),
+        lambda s, p, j: ({}, None),
+        gather_params,
+        compute,
+        register_result,
+    )

@@ -16,10 +16,16 @@ from server.db.session import session_scope
 from server.executors.embedded import EmbeddedExecutor as Worker
 from server.jobs import queue
 from server.jobs.context import JobContext
-from server.jobs.kinds import KINDS, JobKind
-from server.schemas.jobs import EvaluateParams
+from server.jobs.kinds import KINDS
 from server.services import Services, open_services
-from tests.server.conftest import both_backends, database_url, test_settings
+from tests.server.conftest import (
+    ParamsInputs,
+    ResultOutputs,
+    both_backends,
+    database_url,
+    job_kind,
+    test_settings,
+)
 
 pytestmark = both_backends
 
@@ -44,20 +50,20 @@ def job(services: Services, job_id: int) -> Job:
         return s.get(Job, job_id)
 
 
-def run_counting(ctx: JobContext) -> None:
+def compute_counting(inputs: ParamsInputs, workdir: Path, ctx: JobContext) -> ResultOutputs:
     """A test job: ``steps`` steps of 20 ms that report progress; ``fail_at`` raises."""
-    steps = ctx.params.get("steps", 5)
+    steps = inputs.params.get("steps", 5)
     for i in range(steps):
-        if ctx.params.get("fail_at") == i:
+        if inputs.params.get("fail_at") == i:
             raise RuntimeError("step exploded")
         ctx.progress(i / steps, f"step {i}", force=True)
         time.sleep(0.02)
-    ctx.complete(lambda s: {"steps": steps})
+    return ResultOutputs({"steps": steps})
 
 
 @pytest.fixture
 def counting_kind(monkeypatch):
-    kind = JobKind(TEST_KIND, "test job", EvaluateParams, (), lambda s, p, j: ({}, None), run_counting)
+    kind = job_kind(TEST_KIND, compute_counting)
     monkeypatch.setitem(KINDS, TEST_KIND, kind)
     return kind
 
@@ -202,8 +208,8 @@ def test_heartbeats_keep_a_long_job_alive(services: Services, counting_kind) -> 
     assert final.status == "succeeded" and final.attempts == 1
 
 
-def one_kind(monkeypatch, name: str, run) -> str:
-    monkeypatch.setitem(KINDS, name, JobKind(name, "test job", EvaluateParams, (), lambda s, p, j: ({}, None), run))
+def one_kind(monkeypatch, name: str, compute) -> str:
+    monkeypatch.setitem(KINDS, name, job_kind(name, compute))
     return name
 
 
@@ -215,12 +221,12 @@ def test_a_renewal_that_began_before_the_claim_does_not_lose_the_job(services: S
     worker._register()
     renewal_began = time.monotonic()
 
-    def run(ctx: JobContext) -> None:
+    def compute(inputs: ParamsInputs, workdir: Path, ctx: JobContext) -> ResultOutputs:
         worker.on_leases(set(), set(), renewal_began)  # its answer arrives after the claim
         ctx.progress(0.5, "half way", force=True)
-        ctx.complete(lambda s: {"done": True})
+        return ResultOutputs({"done": True})
 
-    j = add_job(services, kind=one_kind(monkeypatch, "race", run))
+    j = add_job(services, kind=one_kind(monkeypatch, "race", compute))
     assert worker.run_once()
     assert job(services, j).status == "succeeded" and job(services, j).result == {"done": True}
 
@@ -231,12 +237,12 @@ def test_a_job_seen_as_lost_but_still_owned_goes_back_to_the_queue(services: Ser
     worker = Worker(services)
     worker._register()
 
-    def run(ctx: JobContext) -> None:
+    def compute(inputs: ParamsInputs, workdir: Path, ctx: JobContext) -> ResultOutputs:
         worker.on_leases(set(), set(), time.monotonic())  # a renewal after the claim, without the job
         ctx.progress(0.5, "half way", force=True)  # raises JobInterrupted
-        ctx.complete(lambda s: {"done": True})
+        return ResultOutputs({"done": True})
 
-    j = add_job(services, kind=one_kind(monkeypatch, "seen_lost", run))
+    j = add_job(services, kind=one_kind(monkeypatch, "seen_lost", compute))
     assert worker.run_once()
     back = job(services, j)
     assert back.status == "queued" and back.worker_id is None and back.attempts == 0 and back.result is None

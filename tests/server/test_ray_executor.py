@@ -12,7 +12,7 @@ running task, a task whose worker dies on every attempt, and an API restart whil
 
 from __future__ import annotations
 
-import hashlib
+import dataclasses
 import json
 import os
 import re
@@ -24,7 +24,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 
 import pytest
 from sqlalchemy import func, select
@@ -34,13 +34,16 @@ from server import capabilities
 from server.db.models import Job, NerfCheckpoint
 from server.jobs import queue
 from server.jobs.context import JobContext
-from server.jobs.kinds import KINDS, JobKind
-from server.schemas.jobs import EvaluateParams
+from server.jobs.kinds import KINDS
+from server.jobs.phases import FileRef, check_plain, leaves
 from tests.server.conftest import (
     SCENE_SIZE,
     LiveServer,
+    ParamsInputs,
+    ResultOutputs,
     database_url,
     free_port,
+    job_kind,
     start_server,
     test_settings,
 )
@@ -326,6 +329,122 @@ def test_fits_in_parallel_survive_a_disruption_then_adapt(request, setup, rooms:
         live.stop()
 
 
+# -- every kind through its three phases ------------------------------------------------------
+
+# A fit on predictions: its Inputs name a model version's checkpoint as well as the frames.
+TINY_FIT = {
+    "labels": "predictions",
+    "steps": 60,
+    "rays_per_step": 256,
+    "occupancy_resolution": 32,
+    "log2_table_size": 12,
+}
+PHASED_KINDS = ("pretrain", "fit_nerf", "evaluate", "adapt")
+
+
+@dataclass
+class Phases:
+    """What spies on a kind's ``gather`` and ``register`` (both on the API node) saw: the
+    Inputs gathered, the Outputs registered, and whether every file the Outputs named was
+    there when they were registered."""
+
+    inputs: list = field(default_factory=list)
+    outputs: list = field(default_factory=list)
+    files_there: list = field(default_factory=list)
+
+
+def spy_on_phases(monkeypatch) -> dict[str, Phases]:
+    seen = {name: Phases() for name in PHASED_KINDS}
+    for name, phases in seen.items():
+        kind = KINDS[name]
+
+        def gather(session, params, node, kind=kind, phases=phases):
+            inputs = kind.gather(session, params, node)
+            phases.inputs.append(inputs)
+            return inputs
+
+        def register(session, outputs, node, kind=kind, phases=phases):
+            phases.outputs.append(outputs)
+            phases.files_there.append(all(Path(p).is_file() for p in leaves(outputs, PurePath)))
+            return kind.register(session, outputs, node)
+
+        monkeypatch.setitem(
+            KINDS, name, dataclasses.replace(kind, gather=gather, register=register)
+        )
+    return seen
+
+
+@pytest.mark.parametrize("executor", ["ray", "embedded"])
+def test_every_kind_runs_in_three_phases(
+    request, executor: str, rooms: Rooms, tmp_path: Path, monkeypatch
+) -> None:
+    """Pre-training, a NeRF fit, an evaluation and an adaptation step each gather their Inputs
+    and register their Outputs on the API node, and compute where the executor runs them (in a
+    Ray task on the cluster): the Inputs name files of the API's artifact store, the Outputs
+    reach ``register`` as files in the API's scratch folder, and both are plain values."""
+    cluster: RayCluster | None = (
+        request.getfixturevalue("ray_cluster") if executor == "ray" else None
+    )
+    seen = spy_on_phases(monkeypatch)
+    live = start_server(
+        test_settings(tmp_path / "service", **(ray_settings(cluster) if cluster else {}))
+    )
+    try:
+        c = live.client()
+        if cluster is not None:
+            cluster.start_worker()
+            wait_for_cpus(2)
+        for folder in (rooms.pretrain, rooms.a):
+            c.upload_scene_folder(folder)
+        jobs = {
+            "pretrain": c.wait_job(
+                c.pretrain([rooms.pretrain.name], epochs=1, batch_size=4, name="base").id,
+                timeout=300,
+            )
+        }
+        jobs["fit_nerf"] = c.wait_job(
+            c.create_job("fit_nerf", scene=rooms.a.name, **TINY_FIT).id, timeout=300
+        )
+        jobs["evaluate"] = c.wait_job(
+            c.evaluate(model="base", scenes=[rooms.a.name]).id, timeout=300
+        )
+        jobs["adapt"] = c.wait_job(c.adapt(rooms.a.name, preset="tiny").id, timeout=600)
+        assert {name: job.status for name, job in jobs.items()} == dict.fromkeys(
+            PHASED_KINDS, "succeeded"
+        )
+
+        store = live.services.store.root.resolve()
+        work = live.services.settings.resolved_work_dir.resolve()
+        for name, job in jobs.items():
+            phases = seen[name]
+            (inputs,), (outputs,) = phases.inputs, phases.outputs
+            for value in (inputs, outputs):
+                check_plain(value)
+                json.dumps(dataclasses.asdict(value), default=str)
+            refs = list(leaves(inputs, FileRef))
+            assert refs and all(Path(r.path).resolve().is_relative_to(store) for r in refs), name
+            paths = [Path(p) for p in leaves(outputs, PurePath)]
+            assert (name == "evaluate") == (
+                not paths
+            )  # only the scores come back from an evaluation
+            assert all(p.resolve().is_relative_to(work) for p in paths) and phases.files_there == [
+                True
+            ], name
+            assert len(attempts_on_nodes(c, job.id)) == (1 if cluster is not None else 0), name
+
+        base, step = c.model("base"), c.model(jobs["adapt"].result["model_id"])
+        assert jobs["pretrain"].result["model_id"] == base.id and step.parent_id == base.id
+        assert (
+            jobs["fit_nerf"].result["size_bytes"] > 0
+            and 0.0 <= jobs["evaluate"].result["miou"][str(c.scene(rooms.a.name).id)] <= 1.0
+        )
+        with live.services.sessions() as s:
+            assert live.services.store.verify(s).ok
+        c.close()
+    finally:
+        live.stop()
+
+
 # -- Ray only ------------------------------------------------------------------------------
 
 
@@ -353,14 +472,14 @@ def test_cancel_reaches_a_running_ray_task(ray_service: LiveServer, rooms: Rooms
         assert not c.scene(rooms.b.name).has_nerf
 
 
-def run_dies(ctx: JobContext) -> None:
+def compute_dies(inputs: ParamsInputs, workdir: Path, ctx: JobContext) -> ResultOutputs:
     """A test job whose process dies: what an out-of-memory kill or a crashing driver does."""
     ctx.progress(0.1, "about to die", force=True)
     os._exit(1)
 
 
 def test_a_task_whose_worker_dies_every_time_fails_after_max_attempts(ray_service: LiveServer, monkeypatch) -> None:
-    monkeypatch.setitem(KINDS, "dies", JobKind("dies", "test job", EvaluateParams, (), lambda s, p, j: ({}, None), run_dies))
+    monkeypatch.setitem(KINDS, "dies", job_kind("dies", compute_dies))
     services = ray_service.services
     with services.sessions() as s:
         job_id = queue.enqueue(s, "dies", {}, None).id
@@ -412,63 +531,6 @@ def test_a_task_without_a_reserved_gpu_runs_on_the_cpu() -> None:
     assert task_device("auto", 0) == task_device("cuda", 0) == "cpu"
     assert task_device("auto", 1) == "auto" and task_device("cuda:1", 1) == "cuda:1"
     assert not KINDS["evaluate"].gpu and KINDS["fit_nerf"].gpu
-
-
-def test_a_registration_travels_with_its_files_and_runs_against_the_api_store(tmp_path: Path) -> None:
-    """What ``ctx.complete(register)`` in a task becomes on the API node: the same function,
-    its paths re-rooted where the API wrote the task's files, ``ctx`` and the task's store
-    replaced by the API's."""
-    from server.artifacts import ArtifactStore
-    from server.executors.remote import (
-        JobSettings,
-        JobSpec,
-        RegistrationContext,
-        RemoteJobContext,
-        TaskOutcome,
-        pack_registration,
-        restore_registration,
-    )
-
-    task_root = tmp_path / "task"
-    spec = JobSpec(7, "fit_nerf", {"scene_id": 3}, 1, "7-abc", run_dies, JobSettings())
-    ctx = RemoteJobContext(spec, task_root, ArtifactStore(task_root / "inputs"), None, channel=None)
-    out = ctx.workdir / "nerf.safetensors"
-    out.parent.mkdir(parents=True)
-    out.write_bytes(b"weights" * 100)
-    scratch = ctx.workdir / "memory"  # a folder: re-rooted, not shipped
-
-    def register(session) -> dict:
-        stored = ctx.store.put_file(session, out, "nerf")
-        return {"job": ctx.job_id, "sha": stored.sha256, "scratch": str(scratch), "scene": ctx.params["scene_id"]}
-
-    assert ctx.complete(register) == {}  # kept for the API node, not run in the task
-    blob, files = pack_registration(ctx)
-    assert files == {"work/nerf.safetensors": b"weights" * 100}
-
-    class Session:  # what the store records in: only ``get``/``add``/``flush`` are used
-        def __init__(self):
-            self.rows = []
-
-        def get(self, _model, _key):
-            return None
-
-        def add(self, row):
-            self.rows.append(row)
-
-        def flush(self):
-            pass
-
-    api_store = ArtifactStore(tmp_path / "api-artifacts")
-    folder = tmp_path / "api-scratch"
-    context = RegistrationContext(7, "fit_nerf", {"scene_id": 3}, folder / "work", api_store, None, None)
-    restored = restore_registration(TaskOutcome("succeeded", None, "node", blob, files), folder, context)
-    session = Session()
-    result = restored(session)
-    sha = hashlib.sha256(b"weights" * 100).hexdigest()
-    assert result == {"job": 7, "sha": sha, "scratch": str(folder / "work" / "memory"), "scene": 3}
-    assert api_store.path_of(sha).read_bytes() == b"weights" * 100 and [r.sha256 for r in session.rows] == [sha]
-    with pytest.raises(ValueError, match="stay inside the task folder"):
-        restore_registration(TaskOutcome("succeeded", None, "node", blob, {"../escape": b"x"}), folder, context)
 
 
 def test_a_lost_workers_reason_keeps_whole_sentences() -> None:

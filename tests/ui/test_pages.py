@@ -20,9 +20,15 @@ import pytest
 
 from server import capabilities
 from server.jobs.context import JobContext
-from server.jobs.kinds import KINDS, JobKind
-from server.schemas.jobs import EvaluateParams
-from tests.server.conftest import SCENE_SIZE, LiveServer, start_server, test_settings
+from server.jobs.kinds import KINDS
+from tests.server.conftest import (
+    SCENE_SIZE,
+    LiveServer,
+    ParamsInputs,
+    job_kind,
+    start_server,
+    test_settings,
+)
 from tests.ui.test_session import signed_in
 
 pytestmark = pytest.mark.skipif(not capabilities.available("nerf"), reason="needs csa_core.nerf for a real fit")
@@ -33,7 +39,7 @@ TINY_NERF = {"steps": 60, "rays_per_step": 256, "occupancy_resolution": 32, "log
 LONG_ERROR = "[Errno 17] " + " and ".join(f"/srv/csa/work/job-7-{'ab' * 20}/scenes/s1/office_0_0/color/{i}.png" for i in range(2))
 
 
-def run_fails(ctx: JobContext) -> None:
+def compute_fails(inputs: ParamsInputs, workdir: Path, ctx: JobContext) -> None:
     """A test job that fails the way a job meets an unexpected error: an exception with a long
     message, whose traceback the executor writes to the job's log."""
     ctx.progress(0.1, "about to fail", force=True)
@@ -56,7 +62,7 @@ def site(tmp_path_factory) -> Iterator[Site]:
     data = tmp_path_factory.mktemp("ui-pages")
     (room,) = synthesize(data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=5)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setitem(KINDS, "fails", JobKind("fails", "test job", EvaluateParams, (), lambda s, p, j: ({}, None), run_fails))
+        mp.setitem(KINDS, "fails", job_kind("fails", compute_fails))
         live = start_server(test_settings(data / "service"))
         try:
             with live.client() as c:
@@ -119,7 +125,7 @@ def test_job_page_shows_the_error_and_folds_the_traceback(site: Site) -> None:
     assert len(tracebacks) == 1
     head, more, body = tracebacks[0]
     assert head.endswith("ERROR Traceback (most recent call last): ") and int(more) == body.count("\n") + 1 >= 3
-    assert "run_fails" in body and "raise FileExistsError" in body  # the whole traceback, folded
+    assert "compute_fails" in body and "raise FileExistsError" in body  # the whole traceback
     outside = re.sub(r"<details class=\"log-entry\">.*?</details>", "", log, flags=re.S)
     assert "File &#34;" not in outside and 'File "' not in outside and "raise FileExistsError" not in outside
 
