@@ -108,7 +108,7 @@ def gather(session: Session, params: dict[str, Any], node: ApiNode) -> FitNerfIn
 
 def compute(inputs: FitNerfInputs, workdir: Path, ctx: JobContext) -> FitNerfOutputs:
     from csa_core.nerf.checkpoint import save_checkpoint
-    from csa_core.nerf.config import preset
+    from csa_core.nerf.config import build_config, preset
     from csa_core.nerf.fit import fit_semantic_nerf
 
     p = inputs.params
@@ -133,15 +133,17 @@ def compute(inputs: FitNerfInputs, workdir: Path, ctx: JobContext) -> FitNerfOut
         label_folder, source = PREDICTIONS_FOLDER, f"predictions:{inputs.model.name}"
         del net
 
-    config = preset(p["preset"])
+    items = []
     if p.get("rays_per_step"):
         # A smaller fit (previews, tests) takes smaller semantic steps after it as well.
-        config.optim.rays_per_step = p["rays_per_step"]
-        config.optim.semantic_rays_per_step = min(config.optim.semantic_rays_per_step, p["rays_per_step"])
+        rays = p["rays_per_step"]
+        semantic = min(preset(p["preset"]).optim.semantic_rays_per_step, rays)
+        items += [f"optim.rays_per_step={rays}", f"optim.semantic_rays_per_step={semantic}"]
     if p.get("occupancy_resolution"):
-        config.sampler.occupancy_resolution = p["occupancy_resolution"]
+        items.append(f"sampler.occupancy_resolution={p['occupancy_resolution']}")
     if p.get("log2_table_size"):
-        config.field.encoding.log2_table_size = p["log2_table_size"]
+        items.append(f"field.encoding.log2_table_size={p['log2_table_size']}")
+    config = build_config(p["preset"], items, flag="fit_nerf parameters")
     total = p["steps"] or config.optim.steps
 
     ctx.progress(0.05, f"fitting ({p['preset']}, {total} steps)", force=True)
