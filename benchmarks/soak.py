@@ -17,8 +17,12 @@ jobs, models, the memory bank and scenes, and queue a tiny NeRF fit at most ever
 ``--max-requests`` requests, whichever comes first.
 
 It prints p50/p95/p99 latency per route (the route's template), the answers by status per
-route, and the server's RSS over time (``/proc/PID/status``), and exits non-zero when any
-answer was a 5xx or a request failed without an answer (docs/operations.md "Soak")::
+route, the server's RSS over time and its memory summary (``/proc/PID/status``: VmRSS when the
+server is up, when the traffic starts and ends, VmHWM for the peak, and the growth over the
+traffic's second half, past the warm-up), and exits non-zero when any answer was a 5xx or a
+request failed without an answer (docs/operations.md "Soak"). A render refused 503
+``render_busy`` (every render of the server busy for ``CSA_RENDER_QUEUE_SECONDS``) is load
+shed, not a failure: it is counted apart, and its client waits the ``Retry-After`` it was given::
 
     python benchmarks/soak.py --smoke --sqlite          # ~1 minute with the setup
     python benchmarks/soak.py --minutes 2               # PostgreSQL, 32 clients
@@ -60,6 +64,7 @@ FRAME_SIZE = (160, 120)
 TINY_NERF = {"steps": 60, "rays_per_step": 256, "occupancy_resolution": 32, "log2_table_size": 12}
 SMOKE_NERF = {"steps": 20, "rays_per_step": 128, "occupancy_resolution": 16, "log2_table_size": 10}
 NO_ANSWER = 0  # the status recorded for a request that got no answer (timeout, reset)
+SHED = "render_busy"  # the code of a render refused while the server's renders are busy (server/nerf_cache.py)
 
 
 @dataclass
@@ -101,6 +106,7 @@ class Record:
     latencies: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
     statuses: dict[str, Counter] = field(default_factory=lambda: defaultdict(Counter))
     failures: Counter = field(default_factory=Counter)  # "route: ExceptionName" of unanswered ones
+    shed: Counter = field(default_factory=Counter)  # route -> 503s that shed load (SHED)
 
     def add(self, route: str, seconds: float, status: int) -> None:
         self.latencies[route].append(seconds)
@@ -108,7 +114,9 @@ class Record:
 
     @property
     def server_errors(self) -> int:
-        return sum(n for c in self.statuses.values() for s, n in c.items() if s >= 500)
+        """5xx answers, but for the load shed (:data:`SHED`)."""
+        errors = sum(n for c in self.statuses.values() for s, n in c.items() if s >= 500)
+        return errors - sum(self.shed.values())
 
     @property
     def unanswered(self) -> int:
@@ -121,15 +129,64 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def rss_mib(pid: int) -> float | None:
-    """The resident set of ``pid`` in MiB (Linux ``/proc``); None when it is gone."""
+def memory_mib(pid: int) -> dict[str, float] | None:
+    """``rss`` (VmRSS: resident now) and ``hwm`` (VmHWM: the most resident since the process
+    started) of ``pid`` in MiB, from Linux ``/proc``; None when it is gone (or not Linux)."""
+    found = {}
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
+            key, _, value = line.partition(":")
+            if key in ("VmRSS", "VmHWM"):
+                found[key] = int(value.split()[0]) / 1024  # kB
+    except (OSError, ValueError, IndexError):
         return None
-    return None
+    if "VmRSS" not in found:
+        return None
+    return {"rss": found["VmRSS"], "hwm": found.get("VmHWM", found["VmRSS"])}
+
+
+def rss_mib(pid: int) -> float | None:
+    """The resident set of ``pid`` in MiB (Linux ``/proc``); None when it is gone."""
+    memory = memory_mib(pid)
+    return None if memory is None else memory["rss"]
+
+
+def slope_per_minute(points: list[tuple[float, float]]) -> float | None:
+    """The least-squares slope of (seconds, MiB) points, in MiB per minute; None under 3 points."""
+    if len(points) < 3:
+        return None
+    n = len(points)
+    mt = sum(t for t, _ in points) / n
+    mv = sum(v for _, v in points) / n
+    var = sum((t - mt) ** 2 for t, _ in points)
+    if var <= 0:
+        return None
+    return 60 * sum((t - mt) * (v - mv) for t, v in points) / var
+
+
+def memory_summary(
+    up: dict[str, float] | None,
+    traffic_start: dict[str, float] | None,
+    end: dict[str, float] | None,
+    rss: list[tuple[float, float]],
+) -> dict[str, float | None]:
+    """The server's memory over a soak, MiB: VmRSS when it was up (before the setup), when the
+    traffic started and when it ended, the peak (VmHWM at the end: between samples too), the
+    growth over the traffic, and the slope over its second half (MiB/min; the first half holds
+    the warm-up: the network, the NeRF and the allocator's pools)."""
+    seconds = rss[-1][0] if rss else 0.0
+    late = [(t, v) for t, v in rss if t >= seconds / 2]
+    start_rss = traffic_start["rss"] if traffic_start else None
+    end_rss = end["rss"] if end else None
+    return {
+        "up_mib": up["rss"] if up else None,
+        "traffic_start_mib": start_rss,
+        "end_mib": end_rss,
+        "peak_mib": end["hwm"] if end else None,
+        "sampled_max_mib": max((v for _, v in rss), default=None),
+        "growth_mib": None if start_rss is None or end_rss is None else end_rss - start_rss,
+        "late_slope_mib_per_min": slope_per_minute(late),
+    }
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -292,6 +349,20 @@ def setup(
 # -- the clients -----------------------------------------------------------------------------
 
 
+def _error_code(r: httpx.Response) -> str | None:
+    try:
+        return r.json()["error"]["code"]
+    except (ValueError, KeyError, TypeError):
+        return None
+
+
+def _retry_after(r: httpx.Response) -> float:
+    try:
+        return max(0.0, float(r.headers.get("Retry-After", "1")))
+    except ValueError:
+        return 1.0
+
+
 @dataclass
 class Client:
     index: int
@@ -328,6 +399,11 @@ class Client:
             self.record.failures[f"{route}: {type(e).__name__}"] += 1
             return None
         self.record.add(route, time.perf_counter() - t0, r.status_code)
+        if r.status_code == 503 and _error_code(r) == SHED:
+            # Load shed: the server asks to come back later; a client waits that long.
+            self.record.shed[route] += 1
+            wait = _retry_after(r)
+            await asyncio.sleep(min(wait, max(0.0, self.deadline - time.monotonic())))
         return r
 
     def frame_form(self, i: int) -> tuple[dict, dict]:
@@ -482,6 +558,7 @@ def report(
     rss: list[tuple[float, float]],
     seconds: float,
     print_: Callable[[str], None] = print,
+    memory: dict[str, float | None] | None = None,
 ) -> dict[str, Any]:
     routes = sorted(record.latencies)
     rows = []
@@ -521,21 +598,44 @@ def report(
     print_(f"errors by status: {errors or 'none'}")
     for what, n in record.failures.most_common():
         print_(f"  no answer: {what} x{n}")
+    shed = sum(record.shed.values())
+    if shed:
+        routes_shed = ", ".join(f"{route} x{n}" for route, n in record.shed.most_common())
+        print_(f"load shed (503 {SHED}, Retry-After honoured; not server errors): {routes_shed}")
     print_("server RSS (MiB) over time:")
     step = max(1, len(rss) // 20)
     for t, mib in rss[::step]:
         print_(f"  {t:7.0f} s  {mib:8.1f}")
     if rss:
         print_(f"  start {rss[0][1]:.1f}, end {rss[-1][1]:.1f}, max {max(m for _, m in rss):.1f}")
+    if memory is not None:
+        print_(memory_line(memory))
     return {
         "seconds": seconds,
         "requests": total,
         "routes": rows,
         "errors": errors,
         "server_errors": record.server_errors,
+        "shed": dict(record.shed),
         "unanswered": record.unanswered,
         "rss_mib": rss,
+        "memory": memory,
     }
+
+
+def memory_line(memory: dict[str, float | None]) -> str:
+    """The memory summary in one line (see :func:`memory_summary`)."""
+
+    def mib(key: str, sign: str = "") -> str:
+        value = memory.get(key)
+        return "n/a" if value is None else f"{value:{sign},.1f}"
+
+    return (
+        f"server memory (MiB, /proc/PID/status): up {mib('up_mib')}, traffic start "
+        f"{mib('traffic_start_mib')}, end {mib('end_mib')}, peak {mib('peak_mib')} (VmHWM); "
+        f"growth over the traffic {mib('growth_mib', '+')}, over its second half "
+        f"{mib('late_slope_mib_per_min', '+')} MiB/min"
+    )
 
 
 # -- main ------------------------------------------------------------------------------------
@@ -652,6 +752,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         t0 = time.monotonic()
         (work / "service").mkdir()
         proc, url = start_server(work / "service", database_url, admin_key, work / "serve.log")
+        up = memory_mib(proc.pid)
         print(
             f"csa serve at {url} (pid {proc.pid}, {'SQLite' if args.sqlite else 'PostgreSQL'}), "
             f"up in {time.monotonic() - t0:.1f} s"
@@ -666,8 +767,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         record: Record = Record()
         rss: list[tuple[float, float]] = []
         t0 = time.monotonic()
+        traffic_start = memory_mib(proc.pid)
         run_in_own_loop(run_clients(url, made["keys"], room, args, nerf, record, proc.pid, rss))
-        results = report(record, rss, time.monotonic() - t0)
+        memory = memory_summary(up, traffic_start, memory_mib(proc.pid), rss)
+        results = report(record, rss, time.monotonic() - t0, memory=memory)
         alive = proc.poll() is None
         if alive:
             print(f"cancelled {cancel_jobs(url, admin_key)} jobs left by the clients")

@@ -67,7 +67,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.services = services
         device = None if settings.device == "auto" else settings.device
         app.state.model_cache = ModelCache(services.store, settings.model_cache_size, device)
-        app.state.nerf_cache = NerfCache(services.store, settings.model_cache_size, device)
+        app.state.nerf_cache = NerfCache(
+            services.store,
+            settings.model_cache_size,
+            device,
+            concurrency=settings.resolved_render_concurrency,
+            queue_seconds=settings.render_queue_seconds,
+            threads=settings.render_threads,
+        )
         worker = None
         if settings.embedded_worker:
             worker = make_executor(services)
@@ -84,6 +91,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if worker is not None:
                 worker.stop(timeout=60)
             sweeper.stop()
+            app.state.nerf_cache.close()
             services.close()
 
     app = FastAPI(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from functools import cached_property
 from pathlib import Path
 from typing import Annotated, Literal
@@ -11,6 +12,14 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 MiB = 1024 * 1024
 GiB = 1024 * MiB
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the platform tells)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
 
 
 class Settings(BaseSettings):
@@ -71,7 +80,13 @@ class Settings(BaseSettings):
     migrate_on_start: bool = True
     device: str = "auto"  # torch device for jobs and inference: auto (CUDA when present), cpu, cuda
     torch_threads: int | None = None  # torch.set_num_threads for jobs and inference
-    model_cache_size: int = 2  # segmentation networks kept loaded for inference
+    model_cache_size: int = 2  # segmentation networks kept loaded for inference (and NeRFs for renders)
+
+    # Renders (POST /api/v1/scenes/{scene}/render, the dashboard's pseudo-label panels;
+    # docs/operations.md "Rendering"; server/nerf_cache.py): this many at once per API process,
+    # each on torch_threads (default: the cores) / this many threads.
+    render_concurrency: int | None = Field(None, ge=1)  # default: the cores, at most 4
+    render_queue_seconds: float = Field(30.0, ge=0)  # a render that waits longer for its turn: 503 with Retry-After
 
     @field_validator("api_keys", mode="before")
     @classmethod
@@ -93,3 +108,13 @@ class Settings(BaseSettings):
     @cached_property
     def resolved_work_dir(self) -> Path:
         return (self.work_dir or self.data_dir / "work").resolve()
+
+    @property
+    def resolved_render_concurrency(self) -> int:
+        return self.render_concurrency or min(4, available_cores())
+
+    @property
+    def render_threads(self) -> int:
+        """Torch threads of each render: the renders together use ``torch_threads`` (default:
+        the cores), each at least one."""
+        return max(1, (self.torch_threads or available_cores()) // self.resolved_render_concurrency)

@@ -7,7 +7,6 @@ import base64
 import cv2
 import numpy as np
 from fastapi import APIRouter, Request
-from starlette.concurrency import run_in_threadpool
 
 from csa_core.data.camera import Intrinsics
 from csa_core.data.image_files import depth_to_mm
@@ -19,10 +18,17 @@ from server.deps import DbDep, ServicesDep
 from server.errors import invalid, not_available, not_found
 from server.lookups import active_nerf, get_scene
 from server.nerf_cache import NerfCache
-from server.schemas.common import ERROR_RESPONSES
+from server.schemas.common import ERROR_RESPONSES, ErrorBody
 from server.schemas.rendering import RenderOut, RenderRequest
 
-router = APIRouter(tags=["rendering"], responses={**ERROR_RESPONSES, 501: ERROR_RESPONSES[422]}, dependencies=[OperatorScope])
+BUSY = {
+    "model": ErrorBody,
+    "description": "every render of this API process stayed busy for `CSA_RENDER_QUEUE_SECONDS` "
+    "(code `render_busy`, `Retry-After` in seconds; docs/operations.md \"Rendering\")",
+}
+router = APIRouter(
+    tags=["rendering"], responses={**ERROR_RESPONSES, 501: ERROR_RESPONSES[422], 503: BUSY}, dependencies=[OperatorScope]
+)
 
 MAX_RENDER_PIXELS = 1024 * 1024
 
@@ -63,7 +69,7 @@ async def render(scene_ref: str, body: RenderRequest, request: Request, db: DbDe
     channels = list(dict.fromkeys(body.channels))
 
     def render_and_encode() -> dict[str, str]:
-        view = cache.render(nerf_id, files, pose, intr)
+        view = cache.render_view(nerf_id, files, pose, intr)
         images: dict[str, str] = {}
         for channel in channels:
             if channel == "color":
@@ -76,6 +82,8 @@ async def render(scene_ref: str, body: RenderRequest, request: Request, db: DbDe
                 images[channel] = _png(cv2.cvtColor(colorize(view["labels"]), cv2.COLOR_RGB2BGR))
         return images
 
-    # The render and the PNG encoding, in a worker thread: the event loop serves other requests.
-    images = await run_in_threadpool(render_and_encode)
+    # The render and the PNG encoding, in a render thread when its turn comes (at most
+    # CSA_RENDER_CONCURRENCY at once; 503 after CSA_RENDER_QUEUE_SECONDS of waiting): the
+    # event loop serves other requests meanwhile (server/nerf_cache.py).
+    images = await cache.run(render_and_encode)
     return RenderOut(scene_id=scene.id, nerf_id=nerf_id, width=intr.width, height=intr.height, images=images)

@@ -1,6 +1,7 @@
 """``benchmarks/soak.py --smoke``: a real ``csa serve`` on loopback (SQLite) under about 20 s of
 mixed traffic from 8 clients answers every request, none with a 5xx, and the report holds the
-latency percentiles of every route the clients use and the server's RSS over time."""
+latency percentiles of every route the clients use, the server's RSS over time and its memory
+summary (RSS at the start and end of the traffic, the peak)."""
 
 from __future__ import annotations
 
@@ -65,3 +66,10 @@ def test_soak_smoke_mode_answers_every_request_without_a_server_error(tmp_path, 
     rss = results["rss_mib"]
     assert len(rss) >= 5 and all(mib > 50 for _, mib in rss)  # a Python with torch, sampled
     assert "server RSS (MiB) over time" in printed and "p99 ms" in printed
+    # RSS when the server was up, at the traffic's start and end, and the peak (VmHWM).
+    memory = results["memory"]
+    assert 50 < memory["up_mib"] and 50 < memory["traffic_start_mib"] <= memory["peak_mib"]
+    assert 50 < memory["end_mib"] <= memory["peak_mib"]
+    assert memory["sampled_max_mib"] <= memory["peak_mib"]
+    assert memory["growth_mib"] == memory["end_mib"] - memory["traffic_start_mib"]
+    assert "server memory (MiB" in printed and "(VmHWM)" in printed
