@@ -847,8 +847,10 @@ def _walk(cell0: np.ndarray, step: np.ndarray, axis: np.ndarray) -> np.ndarray:
 # device, every step a tensor operation over all pixels, voxels or rays of a view.
 
 _T_PIECES = 8  # cells the exact traversal looks at per ray and march iteration
-_T_SKIP = 32  # the most voxels the march skips at once
+_T_EXACT = 16  # the skips are exact (one less than the Chebyshev distance) up to this
+_T_SKIP = 64  # the most voxels the march skips at once (_T_EXACT times a power of two)
 _T_SKIP_STEPS = 3  # skips per ray and march iteration
+_T_FIRST = 5  # samples of a window taken first (the rest where they hold no crossing)
 _T_RAY_CHUNK = 1 << 18  # rays marched together
 _T_CORNERS = torch.tensor(list(np.ndindex(2, 2, 2)), dtype=torch.int64)  # (8, 3)
 
@@ -1116,7 +1118,8 @@ class _TorchCells:
         inside = ((base >= self.lo) & (base + 1 < self.hi)).all(dim=-1)
         if self.dense:
             flat = torch.where(inside, ((base - self.lo) * self.strides).sum(dim=-1), 0)
-            out = self.grid[flat[..., None] + self.offsets]
+            corners = (flat[..., None] + self.offsets).view(-1)
+            out = self.grid.index_select(0, corners).view(*flat.shape, 8)
         else:
             cells = torch.where(inside[..., None], base, self.lo)[..., None, :] + self.corners
             rows = _t_rows_of(self.keys, _t_pack(cells))
@@ -1124,26 +1127,47 @@ class _TorchCells:
         return torch.where(inside[..., None], out, self.fill)
 
 
+def _along(o: Tensor, d: Tensor, t: Tensor) -> Tensor:
+    """The points (W, K, 3) ``o + t d`` of rays from ``o`` (3,) along the columns of ``d``
+    (3, W), at ``t`` (W, K): one coordinate at a time (a broadcast over an axis of three is
+    slow on the CPU)."""
+    out = torch.empty((*t.shape, 3), dtype=t.dtype, device=t.device)
+    for a in range(3):
+        torch.addcmul(o[a], t, d[a, :, None], out=out[..., a])
+    return out
+
+
 def _t_trilinear(points: Tensor, voxel_size: float) -> tuple[Tensor, Tensor]:
-    """:func:`_trilinear` on any device (weights in the points' float type)."""
+    """:func:`_trilinear` on any device (float32 weights)."""
     g = points / voxel_size - 0.5
     base = torch.floor(g)
-    f = g - base
-    wx, wy, wz = (torch.stack([1.0 - f[..., a], f[..., a]], dim=-1) for a in range(3))
-    weights = wx[..., :, None, None] * wy[..., None, :, None] * wz[..., None, None, :]
-    return base.long(), weights.flatten(-3)
+    f = (g - base).float()
+    # The products one column at a time (broadcasts over axes of two are slow on the CPU).
+    fx, fy, fz = f.unbind(-1)
+    x = (1.0 - fx, fx)
+    y = (1.0 - fy, fy)
+    z = (1.0 - fz, fz)
+    xy = [x[i] * y[j] for i in range(2) for j in range(2)]
+    weights = torch.stack([xy[k // 2] * z[k % 2] for k in range(8)], dim=-1)
+    return base.long(), weights
 
 
 class _TorchSurface:
     """:class:`_Surface` on any device. The march is the reference's (windows of samples half
     a voxel apart from where each ray enters a stopping cell, by an exact voxel traversal), but
     it skips empty space with a distance field on the voxel grid instead of coarse cells: for
-    each cell, how far (Chebyshev, in cells) the nearest stopping cell is at least. A ray in a
-    cell whose nearest stopping cell is more than ``r`` cells away advances ``r`` voxels at once
-    (``r`` a power of two up to ``_T_SKIP``; every point on the way lies in a cell at most ``r``
-    cells from its own); next to one, it walks the next ``_T_PIECES`` cells exactly. Samples are
-    interpolated by ``grid_sample``. Maps too large for a dense grid look cells up in sorted keys
-    and walk every cell."""
+    each cell, how many voxels a ray in it may advance at once, one less than the Chebyshev
+    distance (in cells) to the nearest stopping cell (exact up to ``_T_EXACT`` cells, then
+    ``_T_EXACT`` times a power of two, at most ``_T_SKIP``; every point on the way lies in a
+    cell at most that many cells from its own). Next to a stopping cell a ray walks cell by cell
+    (the exact traversal, up to ``_T_PIECES`` cells) until it enters one or a cell it may skip
+    from. Samples are interpolated by ``grid_sample``. Maps too large for a dense grid look
+    cells up in sorted keys and walk every cell, ``_T_PIECES`` at a time.
+
+    On the CPU, torch runs operations over a long axis fast and broadcasts or reductions over an
+    axis of two or three slowly, and ``index_select`` / ``index_copy_`` faster than indexing
+    with ``[]``: the march works one coordinate at a time and compacts its rays' state with
+    those."""
 
     def __init__(self, voxel_map: VoxelSemanticMap):
         self.voxel_size = size = voxel_map.voxel_size
@@ -1161,33 +1185,38 @@ class _TorchSurface:
             grid = d.grid.view(shape)
             # Trilinear sampling by grid_sample: the distances (0 where unobserved) and
             # whether observed, so that the sample is the reference's weighted mean.
+            # The volume's axes are reversed (z, y, x), as grid_sample takes x, y, z positions
+            # of the last, middle and first axis.
             seen = ~torch.isnan(grid)
-            self.volume = torch.stack([torch.where(seen, grid, 0.0), seen.float()])[None]
-            self.grid_lo = d.lo.float()
-            self.grid_scale = 2.0 / (torch.tensor(shape, device=dev) - 1).float()
-            # The field: -1 at stopping cells, 0 at cells next to one, else how many voxels a
-            # ray may skip (r where the nearest stopping cell is more than r cells away, r a
-            # power of two up to _T_SKIP), found by growing the stopping cells 1, 2, 4 ... cells.
-            stopping = _dilate((grid <= 0).float()[None, None], 1)
-            grown = _dilate(stopping, 1)
-            field = torch.full(shape, _T_SKIP, dtype=torch.int32, device=dev)
-            field[grown[0, 0] > 0] = 0
-            r = 1
-            while 2 * r <= _T_SKIP:
-                grown = _dilate(grown, r)  # now 2r cells around the stopping cells
-                field[(grown[0, 0] > 0) & (field == _T_SKIP)] = r
+            volume = torch.stack([torch.where(seen, grid, 0.0), seen.float()])
+            self.volume = volume.permute(0, 3, 2, 1).contiguous()[None]
+            # A position in metres to grid_sample's (-1 at the first voxel's centre, 1 at the
+            # last one's): position * scale + shift.
+            self.grid_scale = 2.0 / (torch.tensor(shape, device=dev) - 1).float() / size
+            self.grid_shift = -(d.lo.float() + 0.5) * size * self.grid_scale - 1.0
+            # The field: -1 at stopping cells, else how many voxels a ray may skip: one less
+            # than the Chebyshev distance (in cells) to the nearest stopping cell up to
+            # _T_EXACT, then r where that distance is more than r (r = _T_EXACT, 2 _T_EXACT, ...
+            # up to _T_SKIP). The stopping cells are grown one cell at a time, then r at a time.
+            stopping = grown = _grow(grid <= 0, 1)
+            field = torch.zeros(shape, dtype=torch.int8, device=dev)
+            for _ in range(_T_EXACT):
+                grown = _grow(grown, 1)
+                field += ~grown  # + 1 for every step that has not reached the cell yet
+            r = _T_EXACT
+            while r < _T_SKIP:
+                grown = _grow(grown, r)  # now 2r cells around the stopping cells
+                field.masked_fill_(~grown, 2 * r)
                 r *= 2
-            field[stopping[0, 0] > 0] = -1
+            field.masked_fill_(stopping, -1)
             # Padded by _T_PIECES cells that are neither stopping nor skipped, so that the
             # traversal's cells from one in the box need no bounds checks.
             pad = _T_PIECES + 1
             field = torch.nn.functional.pad(field[None], (pad,) * 6, value=0)[0]
             self.field = field.reshape(-1)
-            self.field_lo = d.lo - pad
-            self.field_shape = torch.tensor(field.shape, device=dev)
-            self.field_strides = torch.tensor(
-                [field.shape[1] * field.shape[2], field.shape[2], 1], device=dev
-            )
+            self.field_lo = (d.lo - pad).float()
+            self.field_top = [float(n - 1) for n in field.shape]
+            self.field_strides = [field.shape[1] * field.shape[2], field.shape[2], 1]
         else:
             grown = stop[:, None, :] + torch.from_numpy(_cube_offsets(1)).to(dev)
             self.stop_keys = torch.unique(_t_pack(grown.reshape(-1, 3)))
@@ -1202,40 +1231,121 @@ class _TorchSurface:
             else None
         )
 
-    def sample(self, points: Tensor) -> Tensor:
-        """:meth:`_Surface.sample` of points (M, 3)."""
+    def sample(self, o: Tensor, d: Tensor, t: Tensor) -> Tensor:
+        """:meth:`_Surface.sample` (W, K) at the points ``o + t d`` of rays from ``o`` (3,)
+        along ``d`` (W, 3), ``t`` (W, K)."""
         if self.field is None:
-            base, weights = _t_trilinear(points, self.voxel_size)
+            base, weights = _t_trilinear(o + t[..., None] * d[:, None, :], self.voxel_size)
             values = self.distances.cube(base)
             seen = ~torch.isnan(values)
             weights = torch.where(seen, weights, 0.0)
             total = (weights * torch.where(seen, values, 0.0)).sum(dim=-1)
             wsum = weights.sum(dim=-1)
         else:
-            g = (points / self.voxel_size - 0.5 - self.grid_lo) * self.grid_scale - 1.0
+            g0, dg = o * self.grid_scale + self.grid_shift, (d * self.grid_scale).T
+            g = _along(g0, dg, t)
             out = torch.nn.functional.grid_sample(
-                self.volume, g.flip(-1).view(1, 1, 1, -1, 3), align_corners=True
-            ).view(2, -1)
+                self.volume, g.view(1, 1, 1, -1, 3), align_corners=True
+            ).view(2, *t.shape)
             total, wsum = out[0], out[1]
         return torch.where(wsum > 1e-6, total / wsum, math.nan)
 
-    def _field_flat(self, cells: Tensor) -> Tensor:
-        """Flat index (R,) into the field of integer cells (R, 3), clamped into the grid."""
-        c = torch.minimum((cells - self.field_lo).clamp_(min=0), self.field_shape - 1)
-        return (c * self.field_strides).sum(dim=1)
+    def _field_flat(self, o: Tensor, d: Tensor, t: Tensor) -> Tensor:
+        """Flat int32 index (R,) into the field of the cells that hold the points ``o + t d``
+        of rays from ``o`` (3,) (in cells from the field's first cell) along ``d`` (R, 3)
+        (unit, in metres) at ``t`` (R,), clamped into the grid. One coordinate at a time
+        (broadcasts and sums over an axis of three are slow on the CPU)."""
+        flat = None
+        for a in range(3):
+            c = torch.addcmul(o[a], t, d[:, a], value=1.0 / self.voxel_size).floor_()
+            c = c.clamp_(0.0, self.field_top[a]).int().mul_(self.field_strides[a])
+            flat = c if flat is None else flat.add_(c)
+        return flat
 
-    def _field_at(self, points: Tensor) -> Tensor:
-        """The field (M,) at points (M, 3). A point outside the grid takes the value of the
-        nearest cell in it, which is never farther from a stopping cell."""
-        return self.field[self._field_flat(torch.floor(points / self.voxel_size).long())]
+    def _field_at(self, o: Tensor, d: Tensor, t: Tensor) -> Tensor:
+        """The field (R,) at the points ``o + t d`` (as in :meth:`_field_flat`). A point outside
+        the grid takes the value of the nearest cell in it, which is never farther from a
+        stopping cell."""
+        return self.field.index_select(0, self._field_flat(o, d, t))
+
+    def _walk(self, o: Tensor, d: Tensor, start: Tensor, end: Tensor) -> tuple[Tensor, Tensor]:
+        """The exact voxel traversal on the field, one cell at a time for up to ``_T_PIECES``
+        cells while the rays ``o + t d`` (as in :meth:`_field_at`) from ``start`` (R,) stay next
+        to stopping cells: (R,) whether each enters a stopping cell before ``end``, and where
+        it enters it (``start`` if it begins in one), else where the first cell it may skip
+        from lets it skip to, or where it enters the cell after the last one walked (``end`` or
+        beyond where it leaves the box first)."""
+        # Each ray's state in two rows, compacted at once: where it crosses the next plane of
+        # each axis, how far apart those planes are, where it entered its cell and where it
+        # ends; and its cell's flat index, the index's change a cell along each axis, its row.
+        # Built one axis at a time (broadcasts over an axis of three are slow on the CPU).
+        n = start.shape[0]
+        real_state = torch.empty((n, 8), device=d.device)
+        int_state = torch.empty((n, 5), dtype=torch.int32, device=d.device)
+        real_state[:, 6], real_state[:, 7] = start, end
+        int_state[:, 4] = torch.arange(n, dtype=torch.int32, device=d.device)
+        flat = int_state[:, 0]
+        for a in range(3):
+            da = d[:, a]
+            x = torch.addcmul(o[a], start, da, value=1.0 / self.voxel_size)
+            # The cell the ray is in just after ``x`` (on a plane: the one it moves into).
+            cell = torch.where(da < 0, torch.ceil(x) - 1, torch.floor(x))
+            per_cell = self.voxel_size / da
+            cross = torch.addcmul(start, cell + (da > 0) - x, per_cell, out=real_state[:, a])
+            cross.nan_to_num_(nan=math.inf, neginf=math.inf)  # a ray parallel to the planes
+            torch.abs(per_cell, out=real_state[:, 3 + a])
+            stride = self.field_strides[a]
+            torch.mul(torch.sign(da).int(), stride, out=int_state[:, 1 + a])
+            c = cell.clamp_(0.0, self.field_top[a]).int().mul_(stride)
+            if a:
+                flat += c
+            else:
+                flat.copy_(c)
+        hit = torch.zeros_like(start, dtype=torch.bool)
+        t_out = start.clone()
+        for _ in range(_T_PIECES):
+            cx, cy, cz = real_state[:, 0], real_state[:, 1], real_state[:, 2]
+            enter, end = real_state[:, 6], real_state[:, 7]
+            field = self.field.index_select(0, int_state[:, 0])
+            # The nearest plane (the first axis of equal ones).
+            nearer = torch.minimum(cx, cy)
+            leave = torch.minimum(nearer, cz)
+            axis = torch.where(cz < nearer, 2, (cy < cx).long())[:, None]
+            # Rounding can leave a piece of a ray empty, and an empty piece stops no ray.
+            real = torch.minimum(leave, end) > enter
+            done = (real & (field != 0)) | (enter >= end)
+            if bool(done.any()):
+                ended = done.nonzero().squeeze(1)
+                rows = int_state[:, 4].index_select(0, ended).long()
+                hit.index_copy_(0, rows, (real & (field < 0)).index_select(0, ended))
+                f = field.index_select(0, ended)
+                # A ray in a cell it may skip from skips: every point of the skip lies in a
+                # cell at most ``field`` cells from the one it enters, whose face it enters on.
+                f = f.clamp(min=0) * self.voxel_size
+                t_out.index_copy_(0, rows, enter.index_select(0, ended) + f)
+                going = (~done).nonzero().squeeze(1)
+                if not going.numel():
+                    return hit, t_out
+                real_state, int_state = (
+                    real_state.index_select(0, going),
+                    int_state.index_select(0, going),
+                )
+                leave, axis = leave.index_select(0, going), axis.index_select(0, going)
+            # Into the next cell, across the nearest plane.
+            int_state[:, 0] += int_state[:, 1:4].gather(1, axis).squeeze(1)
+            torch.maximum(leave, real_state[:, 6], out=real_state[:, 6])
+            real_state[:, :3].scatter_add_(1, axis, real_state[:, 3:6].gather(1, axis))
+        t_out.index_copy_(0, int_state[:, 4].long(), real_state[:, 6])
+        return hit, t_out
 
     def _enter_stop(
         self, o: Tensor, d: Tensor, start: Tensor, end: Tensor
     ) -> tuple[Tensor, Tensor]:
-        """One step of the exact voxel traversal of :func:`_first_stop` over ``_T_PIECES``
-        cells: for rays ``o + t d`` from ``start`` (R,), whether one of those cells before
-        ``end`` is a stopping cell and where the ray enters the first such (``start`` if it
-        begins in one), else where the last of them ends."""
+        """For maps without a dense grid, one step of the exact voxel traversal of
+        :func:`_first_stop` over ``_T_PIECES`` cells, looked up in the stopping cells' sorted
+        keys: for rays ``o + t d`` (metres) from ``start`` (R,), whether one of those cells
+        before ``end`` is a stopping cell and where the ray enters the first such (``start`` if
+        it begins in one), else where the last of them ends."""
         size, n = self.voxel_size, _T_PIECES
         x = (o + start[:, None] * d) / size  # (R, 3) in cells
         step = torch.sign(d)
@@ -1248,17 +1358,11 @@ class _TorchSurface:
         t, axis = t[:, : n - 1], torch.div(order[:, : n - 1], n - 1, rounding_mode="floor")
         # Pieces [start, t0], [t0, t1], ...: piece j's cell is the first one's moved a step
         # along the axes of the first j crossings.
-        if self.field is not None:
-            flat0 = self._field_flat(cell0.long())
-            moves = (step.long() * self.field_strides).gather(1, axis).cumsum(dim=1)
-            flat = torch.cat([flat0[:, None], flat0[:, None] + moves], dim=1)
-            stop = self.field[flat] < 0
-        else:
-            moves = torch.nn.functional.one_hot(axis, 3) * step.long()[:, None, :]
-            cells = cell0.long()[:, None, :] + torch.cat(
-                [torch.zeros_like(moves[:, :1]), moves.cumsum(dim=1)], dim=1
-            )
-            stop = _t_rows_of(self.stop_keys, _t_pack(cells)) >= 0
+        moves = torch.nn.functional.one_hot(axis, 3) * step.long()[:, None, :]
+        cells = cell0.long()[:, None, :] + torch.cat(
+            [torch.zeros_like(moves[:, :1]), moves.cumsum(dim=1)], dim=1
+        )
+        stop = _t_rows_of(self.stop_keys, _t_pack(cells)) >= 0
         enter = torch.maximum(torch.cat([start[:, None], t], dim=1), start[:, None])
         leave = torch.cat([t, torch.full_like(t[:, :1], math.inf)], dim=1)
         real = (torch.minimum(leave, end[:, None]) > enter) & (enter < end[:, None])
@@ -1273,67 +1377,117 @@ class _TorchSurface:
         the traversal skips by the distance field instead of coarse cells."""
         dev = dirs.device
         out = torch.full((dirs.shape[0],), math.nan, device=dev)
-        t_lo = (self.lo - origin) / dirs
-        t_hi = (self.hi - origin) / dirs
-        near = torch.nan_to_num(torch.minimum(t_lo, t_hi), nan=-math.inf).amax(dim=1)
-        far = torch.nan_to_num(torch.maximum(t_lo, t_hi), nan=math.inf).amin(dim=1)
-        near = near.clamp(min=0.0)
-        far = far.clamp(max=max_range)
+        # Where each ray enters and leaves the box (slab test, one axis at a time; NaN, from a
+        # ray in a face's plane, limits nothing).
+        near = torch.zeros_like(dirs[:, 0])
+        far = torch.full_like(near, max_range)
+        for a in range(3):
+            inv = 1.0 / dirs[:, a]
+            t_lo, t_hi = (self.lo[a] - origin[a]) * inv, (self.hi[a] - origin[a]) * inv
+            near = torch.fmax(near, torch.minimum(t_lo, t_hi))
+            far = torch.fmin(far, torch.maximum(t_lo, t_hi))
         rays = (near < far).nonzero().squeeze(1)
-        step = 0.5 * self.voxel_size
         o = origin.float()
         # Each ray's state in one row, compacted at once: start, end, direction, index.
         state = torch.cat(
-            [near[rays, None], far[rays, None], dirs[rays], rays[:, None].double()], dim=1
+            [
+                near.index_select(0, rays)[:, None],
+                far.index_select(0, rays)[:, None],
+                dirs.index_select(0, rays),
+                rays[:, None].double(),
+            ],
+            dim=1,
         ).float()
-        offsets = step * torch.arange(-1, _SURFACE_SAMPLES, device=dev, dtype=torch.float32)
+        if self.field is not None:
+            oc = o / self.voxel_size - self.field_lo  # in cells from the field's first cell
         while state.shape[0]:
             start, end, d = state[:, 0], state[:, 1], state[:, 2:5]
             if self.field is not None:
                 # Skip ``skip`` voxels where the nearest stopping cell is farther, a few times.
                 for _ in range(_T_SKIP_STEPS):
-                    skip = self._field_at(o + start[:, None] * d)
+                    skip = self._field_at(oc, d, start)
                     start = torch.where(skip > 0, start + skip * self.voxel_size, start)
-                close = ((skip <= 0) & (start < end)).nonzero().squeeze(1)
+                # A ray in a stopping cell enters it where it is; one next to one walks.
+                inside = ((skip < 0) & (start < end)).nonzero().squeeze(1)
+                close = ((skip == 0) & (start < end)).nonzero().squeeze(1)
+                walk = self._walk
             else:
                 close = torch.arange(state.shape[0], device=dev)
-            found_rows = close[:0]
+                inside = close[:0]
+                walk, oc = self._enter_stop, o
+            win, t_in = inside, start.index_select(0, inside)
             if close.numel():
-                ds, e = d[close], end[close]
-                hit, t_in = self._enter_stop(o, ds, start[close], e)
-                start[close] = t_in
-                # From the first stopping cell, a window of samples half a voxel apart.
-                win = close[hit]
-                t = t_in[hit, None] + offsets
-                f = self.sample((o + t[..., None] * ds[hit, None, :]).view(-1, 3)).view(t.shape)
-                before, after = f[:, :-1], f[:, 1:]
-                enter = (after <= 0) & ~(before <= 0) & (t[:, 1:] <= e[hit, None])
-                found = enter.any(dim=1)
-                j = enter.to(torch.uint8).argmax(dim=1, keepdim=True)
-                b, a = before.gather(1, j).squeeze(1), after.gather(1, j).squeeze(1)
-                t_cross = t[:, 1:].gather(1, j).squeeze(1)
-                t_cross = t_cross + torch.where(b > 0, step * a / (b - a), 0.0)
-                found_rows = win[found]
-                out[state[found_rows, 5].long()] = t_cross[found]
-                start[win] = t[:, -1]
-            going = start < end
-            going[found_rows] = False
+                hit, t_close = walk(
+                    oc,
+                    d.index_select(0, close),
+                    start.index_select(0, close),
+                    end.index_select(0, close),
+                )
+                start.index_copy_(0, close, t_close)
+                hit = hit.nonzero().squeeze(1)
+                win = torch.cat([win, close.index_select(0, hit)])
+                t_in = torch.cat([t_in, t_close.index_select(0, hit)])
+            found_rows = win[:0]
+            if win.numel():
+                t_last, found, t_cross = self._window(o, d, end, win, t_in)
+                start.index_copy_(0, win, t_last)
+                found_rows = win.index_select(0, found)
+                rays = state[:, 5].index_select(0, found_rows).long()
+                out.index_copy_(0, rays, t_cross)
+            going = (start < end).index_fill_(0, found_rows, False)
             state[:, 0] = start
-            state = state[going]
+            state = state.index_select(0, going.nonzero().squeeze(1))
         return out
 
-
-def _dilate(mask: Tensor, r: int) -> Tensor:
-    """A (1, 1, X, Y, Z) 0/1 grid of cells within ``r`` cells (Chebyshev) of a 1, from one
-    within ``r`` (or, for ``r = 1``, of a 1): a 3x3x3 maximum with dilation ``r``, as three
-    one-axis passes."""
-    for axis in range(3):
-        kernel, dilation, pad = [1, 1, 1], [1, 1, 1], [0] * 6
-        kernel[axis], dilation[axis], pad[5 - 2 * axis - 1 : 6 - 2 * axis] = 3, r, [r, r]
-        mask = torch.nn.functional.max_pool3d(
-            torch.nn.functional.pad(mask, pad), kernel, stride=1, dilation=dilation
+    def _window(
+        self, o: Tensor, d: Tensor, end: Tensor, win: Tensor, t_in: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """The window of samples half a voxel apart from where the rays ``win`` (W,) (of rays
+        ``o + t d`` (R, 3) that end at ``end`` (R,)) enter a stopping cell, at ``t_in`` (W,):
+        where the window's last sample lies (W,), the windows (F,) that hold a crossing (the
+        TSDF turning from positive or unobserved to non-positive before ``end``) and where the
+        first one lies (F,). The window's second half is sampled only where its first half
+        holds no crossing."""
+        step = 0.5 * self.voxel_size
+        offsets = step * torch.arange(-1, _SURFACE_SAMPLES, device=d.device, dtype=torch.float32)
+        t = t_in[:, None] + offsets
+        dw, e = d.index_select(0, win), end.index_select(0, win)[:, None]
+        f = self.sample(o, dw, t[:, :_T_FIRST])
+        before, after = f[:, :-1], f[:, 1:]
+        first = ((after <= 0) & ~(before <= 0) & (t[:, 1:_T_FIRST] <= e)).any(dim=1)
+        rest = (~first & (t[:, _T_FIRST] <= e[:, 0])).nonzero().squeeze(1)
+        f = torch.cat([f, torch.full_like(t[:, _T_FIRST:], math.nan)], dim=1)
+        if rest.numel():
+            later = self.sample(o, dw.index_select(0, rest), t.index_select(0, rest)[:, _T_FIRST:])
+            f[:, _T_FIRST:].index_copy_(0, rest, later)
+        before, after = f[:, :-1], f[:, 1:]
+        enter = (after <= 0) & ~(before <= 0) & (t[:, 1:] <= e)
+        found = enter.any(dim=1).nonzero().squeeze(1)
+        enter, before, after = (
+            enter.index_select(0, found),
+            before.index_select(0, found),
+            after.index_select(0, found),
         )
-    return mask
+        j = enter.to(torch.uint8).argmax(dim=1, keepdim=True)
+        b, a = before.gather(1, j).squeeze(1), after.gather(1, j).squeeze(1)
+        t_cross = t.index_select(0, found)[:, 1:].gather(1, j).squeeze(1)
+        return t[:, -1], found, t_cross + torch.where(b > 0, step * a / (b - a), 0.0)
+
+
+def _grow(mask: Tensor, r: int) -> Tensor:
+    """A 3D boolean grid of the cells within ``r`` cells (Chebyshev) of a true cell of
+    ``mask``: along each axis in turn, the union of shifts by -s, 0 and +s for s = 1, 2, 4 ...
+    (each doubling the reach, the last one what is left of ``r``)."""
+    out = mask
+    for axis in range(3):
+        n, reach = out.shape[axis], 0
+        while reach < min(r, n - 1):
+            s = min(reach + 1, r - reach, n - 1 - reach)
+            src, out = out, out.clone()
+            out.narrow(axis, s, n - s).logical_or_(src.narrow(axis, 0, n - s))
+            out.narrow(axis, 0, n - s).logical_or_(src.narrow(axis, s, n - s))
+            reach += s
+    return out
 
 
 def _t_surface(voxel_map: VoxelSemanticMap) -> _TorchSurface | None:
@@ -1401,16 +1555,14 @@ def _t_scores_near(voxel_map: VoxelSemanticMap, surface: _TorchSurface, points: 
     if surface.rows is None or n == 0:
         return torch.zeros((n, c), device=points.device)
     base, weights = _t_trilinear(points, voxel_map.voxel_size)
-    rows = surface.rows.cube(base).view(-1)
-    voted = (rows >= 0).nonzero().squeeze(1)  # (point, corner) pairs with scores
-    # The weighted sum as a product with a sparse (points, voxels) matrix of the weights.
-    weights = torch.sparse_coo_tensor(
-        torch.stack([torch.div(voted, 8, rounding_mode="floor"), rows[voted].long()]),
-        weights.float().view(-1)[voted],
-        (n, voxel_map.num_voxels),
-        check_invariants=False,
+    rows = surface.rows.cube(base)
+    # The weighted sum of the rows of the corners with scores, as one bag of eight rows a point.
+    scores = torch.nn.functional.embedding_bag(
+        rows.clamp(min=0).long(),
+        voxel_map._scores,
+        per_sample_weights=torch.where(rows >= 0, weights, 0.0),
+        mode="sum",
     )
-    scores = torch.sparse.mm(weights, voxel_map._scores)
     none = (~(scores.amax(dim=1) > 0)).nonzero().squeeze(1)
     if none.numel():
         cells = torch.floor(points[none] / voxel_map.voxel_size).long()
@@ -1438,13 +1590,11 @@ def _t_neighbour_scores(voxel_map: VoxelSemanticMap, keys: Tensor) -> Tensor:
     ``keys`` (N,)."""
     offsets = torch.from_numpy(_cube_offsets(voxel_map.config.search_radius)).to(keys.device)
     cells = _t_unpack(keys)[:, None, :] + offsets
-    rows = _t_rows_of(voxel_map._keys, _t_pack(cells.view(-1, 3)))
-    found = (rows >= 0).nonzero().squeeze(1)  # (voxel, neighbour) pairs with scores
-    # The sums as a product with a sparse 0/1 (voxels, voxels with scores) matrix.
-    neighbours = torch.sparse_coo_tensor(
-        torch.stack([torch.div(found, offsets.shape[0], rounding_mode="floor"), rows[found]]),
-        torch.ones(found.numel(), device=keys.device),
-        (keys.numel(), voxel_map.num_voxels),
-        check_invariants=False,
+    rows = _t_rows_of(voxel_map._keys, _t_pack(cells)).view(-1, offsets.shape[0])
+    # The sums as bags of rows, those without scores weighing nothing.
+    return torch.nn.functional.embedding_bag(
+        rows.clamp(min=0),
+        voxel_map._scores,
+        per_sample_weights=(rows >= 0).float(),
+        mode="sum",
     )
-    return torch.sparse.mm(neighbours, voxel_map._scores)
