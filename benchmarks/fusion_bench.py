@@ -567,7 +567,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
                     fused.append(measured(render_row, scene, fitted, fit, render))
             for row in fused:
                 rows.append({**head, **row})
-                shown = {k: v for k, v in row.items() if not k.startswith("class_iou_")}
+                shown = {k: v for k, v in row.items() if not k.startswith(("class_iou_", "class_share_"))}
                 print("  " + ", ".join(f"{k} {fmt(k, v)}" for k, v in shown.items()), flush=True)
     return rows
 
