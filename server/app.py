@@ -39,9 +39,11 @@ from server.routers import (
 )
 from server.services import open_services
 from server.settings import Settings
+from server.ui.session import require_ui_session
 from server.upload_limits import BodyLimitMiddleware
 
 API_PREFIX = "/api/v1"
+UI_API_PREFIX = "/ui" + API_PREFIX
 
 DESCRIPTION = """
 Continual semantic adaptation as a service: upload posed RGB-D frames of the scenes a robot
@@ -81,7 +83,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             worker.start()
         app.state.worker = worker
         sweeper = OrphanSweeper(
-            services.store, services.sessions, settings.orphan_blob_grace_seconds, settings.orphan_sweep_interval_seconds
+            services.store,
+            services.sessions,
+            settings.orphan_blob_grace_seconds,
+            settings.orphan_sweep_interval_seconds,
         )
         sweeper.start()
         app.state.orphan_sweeper = sweeper
@@ -114,9 +119,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.request_rate = RequestRate.from_settings(settings)  # per key (server/quotas.py)
     secured = [Depends(require_api_key), RequestRateQuota]
     app.include_router(prometheus.router, dependencies=secured, responses=QUOTA_RESPONSES)
-    for module in (scenes, frames, jobs, models, memory, continual, inference, rendering, admin):
+    rest = (scenes, frames, jobs, models, memory, continual, inference, rendering, admin)
+    for module in rest:
         app.include_router(
             module.router, prefix=API_PREFIX, dependencies=secured, responses=QUOTA_RESPONSES
+        )
+    # The same REST API for the dashboard's scripts, with its session cookie and CSRF checks
+    # instead of a key header (server/ui/session.py), hidden from the OpenAPI document.
+    for module in rest:
+        app.include_router(
+            module.router,
+            prefix=UI_API_PREFIX,
+            dependencies=[Depends(require_ui_session)],
+            include_in_schema=False,
         )
     app.include_router(ui.router)  # the dashboard at /ui: its own session auth (server/ui)
     return app

@@ -1,4 +1,6 @@
-"""Small ASGI helpers shared by the service's middleware."""
+"""Small ASGI helpers shared by the service's middleware: the error middleware
+(``server/errors.py``) and the body limits (``server/upload_limits.py``) both import them, and
+this module imports neither."""
 
 from __future__ import annotations
 
@@ -10,7 +12,8 @@ class TrackingSend:
 
     ``started`` turns true when the ``http.response.start`` message is handed on: after that
     the status and headers are on their way and the request cannot be answered again
-    (:class:`server.errors.UnhandledErrorMiddleware`, :class:`server.upload_limits.BodyLimitMiddleware`).
+    (:class:`server.errors.UnhandledErrorMiddleware`,
+    :class:`server.upload_limits.BodyLimitMiddleware`).
     """
 
     def __init__(self, send: Send):
@@ -21,3 +24,9 @@ class TrackingSend:
         if message["type"] == "http.response.start":
             self.started = True
         await self._send(message)
+
+
+class BodyTooLarge(Exception):
+    """A request body went over its route's limit while it streamed in: raised by
+    :class:`server.upload_limits.BodyLimitMiddleware`, which answers 413 itself, so that
+    :class:`server.errors.UnhandledErrorMiddleware` lets it pass instead of answering 500."""

@@ -87,27 +87,32 @@ def run_keys(args: argparse.Namespace) -> int:
         from server.db.migrate import upgrade_to_head
         from server.db.session import make_engine, make_sessionmaker
         from server.errors import APIError
-        from server.keys import create_key, key_state, keys_query, revoke_key
+        from server.keys import key_state
+        from server.services.keys import create_key, keys_query, revoke_key
     except ImportError as e:
         print(f"csa keys: {SERVER_EXTRA_HINT}: {e}", file=sys.stderr)
         return 2
     settings = settings_from_args(args)
     engine = make_engine(settings.resolved_database_url)
     try:
-        upgrade_to_head(engine)  # a fresh data folder gets its tables, as the service would make them
+        # A fresh data folder gets its tables, as the service would make them.
+        upgrade_to_head(engine)
         with make_sessionmaker(engine)() as db:
             if args.keys_action == "create":
                 row, key = create_key(db, args.name, args.scope, args.expires)
                 expiry = f", expires {_when(row.expires_at)}" if row.expires_at else ""
-                print(f"created key {row.name!r} (scope {row.scope}{expiry}, prefix {row.prefix}); store it now, it is not shown again:", file=sys.stderr)
+                made = f"created key {row.name!r} (scope {row.scope}{expiry}, prefix {row.prefix})"
+                print(f"{made}; store it now, it is not shown again:", file=sys.stderr)
                 print(key)
             elif args.keys_action == "list":
                 rows = list(db.scalars(keys_query(include_revoked=not args.active)))
-                header = ("NAME", "PREFIX", "SCOPE", "STATE", "CREATED", "EXPIRES", "LAST USED", "REVOKED")
-                table = [header] + [
-                    (k.name, k.prefix, k.scope, key_state(k), _when(k.created_at), _when(k.expires_at), _when(k.last_used_at), _when(k.revoked_at))
-                    for k in rows
-                ]
+                header = (
+                    "NAME", "PREFIX", "SCOPE", "STATE", "CREATED", "EXPIRES", "LAST USED", "REVOKED"
+                )
+                table = [header]
+                for k in rows:
+                    times = (k.created_at, k.expires_at, k.last_used_at, k.revoked_at)
+                    table.append((k.name, k.prefix, k.scope, key_state(k), *map(_when, times)))
                 widths = [max(len(r[i]) for r in table) for i in range(len(header))]
                 for r in table:
                     print("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip())

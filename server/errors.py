@@ -23,7 +23,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from csa_core.errors import CSAInputError
-from server.asgi import TrackingSend
+from server.asgi import BodyTooLarge, TrackingSend
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +31,14 @@ log = logging.getLogger(__name__)
 class APIError(Exception):
     """An error the client can act on; raised anywhere in a request."""
 
-    def __init__(self, status: int, code: str, message: str, field: str | None = None, headers: dict[str, str] | None = None):
+    def __init__(
+        self,
+        status: int,
+        code: str,
+        message: str,
+        field: str | None = None,
+        headers: dict[str, str] | None = None,
+    ):
         super().__init__(message)
         self.status = status
         self.code = code
@@ -53,7 +60,9 @@ def conflict(message: str, field: str | None = None) -> APIError:
 
 
 def too_large(field: str, limit: int) -> APIError:
-    return APIError(413, "too_large", f"{field}: upload exceeds the limit of {limit} bytes", field=field)
+    return APIError(
+        413, "too_large", f"{field}: upload exceeds the limit of {limit} bytes", field=field
+    )
 
 
 def not_available(message: str) -> APIError:
@@ -76,7 +85,13 @@ def _printable(text: str) -> str:
 
 
 def error_body(code: str, message: str, field: str | None = None) -> dict[str, Any]:
-    return {"error": {"code": code, "message": _printable(message), "field": None if field is None else _printable(field)}}
+    return {
+        "error": {
+            "code": code,
+            "message": _printable(message),
+            "field": None if field is None else _printable(field),
+        }
+    }
 
 
 def _field_of(loc: tuple[Any, ...] | list[Any]) -> str:
@@ -87,7 +102,9 @@ def _field_of(loc: tuple[Any, ...] | list[Any]) -> str:
 
 
 def _internal_error(exc: Exception) -> JSONResponse:
-    return JSONResponse(error_body("internal", f"internal error: {type(exc).__name__}"), status_code=500)
+    return JSONResponse(
+        error_body("internal", f"internal error: {type(exc).__name__}"), status_code=500
+    )
 
 
 class UnhandledErrorMiddleware:
@@ -122,7 +139,11 @@ class UnhandledErrorMiddleware:
                     raise
                 if _database_unavailable(exc):
                     if attempt + 1 < tries and getattr(exc, "connection_invalidated", False):
-                        log.warning("database connection lost during %s %s; reading again", scope.get("method"), scope.get("path"))
+                        log.warning(
+                            "database connection lost during %s %s; reading again",
+                            scope.get("method"),
+                            scope.get("path"),
+                        )
                         continue
                     await _unavailable(exc)(scope, receive, send)
                     return
@@ -139,9 +160,16 @@ def _database_unavailable(exc: BaseException) -> bool:
 
 def _unavailable(exc: BaseException) -> JSONResponse:
     # The driver's words name the database's host and port: in the log, not in the answer.
-    log.error("database unavailable: %s", str(getattr(exc, "orig", exc)).strip()[:300] or type(exc).__name__)
+    log.error(
+        "database unavailable: %s",
+        str(getattr(exc, "orig", exc)).strip()[:300] or type(exc).__name__,
+    )
     return JSONResponse(
-        error_body("database_unavailable", "the service's database is unavailable (not reachable, restarting or locked); retry shortly"),
+        error_body(
+            "database_unavailable",
+            "the service's database is unavailable (not reachable, restarting or locked); retry"
+            " shortly",
+        ),
         status_code=503,
         headers={"Retry-After": "5"},
     )
@@ -150,13 +178,15 @@ def _unavailable(exc: BaseException) -> JSONResponse:
 def install_error_handlers(app: FastAPI) -> None:
     """The error answers; call before adding other middleware, so that
     :class:`UnhandledErrorMiddleware` is the innermost."""
-    from server.upload_limits import BodyTooLarge  # imports this module
-
     app.add_middleware(UnhandledErrorMiddleware, passthrough=(BodyTooLarge,))
 
     @app.exception_handler(APIError)
     async def _api_error(_: Request, exc: APIError) -> JSONResponse:
-        return JSONResponse(error_body(exc.code, exc.message, exc.field), status_code=exc.status, headers=exc.headers)
+        return JSONResponse(
+            error_body(exc.code, exc.message, exc.field),
+            status_code=exc.status,
+            headers=exc.headers,
+        )
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError) -> JSONResponse:
@@ -168,18 +198,35 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(CSAInputError)
     async def _input(_: Request, exc: CSAInputError) -> JSONResponse:
-        return JSONResponse(error_body("invalid", f"{exc.where}: {exc.problem}", exc.where), status_code=422)
+        return JSONResponse(
+            error_body("invalid", f"{exc.where}: {exc.problem}", exc.where), status_code=422
+        )
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
-        code = {401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed", 413: "too_large"}.get(exc.status_code, "http_error")
-        return JSONResponse(error_body(code, str(exc.detail)), status_code=exc.status_code, headers=getattr(exc, "headers", None))
+        code = {
+            401: "unauthorized",
+            403: "forbidden",
+            404: "not_found",
+            405: "method_not_allowed",
+            413: "too_large",
+        }.get(exc.status_code, "http_error")
+        return JSONResponse(
+            error_body(code, str(exc.detail)),
+            status_code=exc.status_code,
+            headers=getattr(exc, "headers", None),
+        )
 
     @app.exception_handler(DataError)
     async def _refused_by_database(_: Request, exc: DataError) -> JSONResponse:
         reason = str(getattr(exc, "orig", exc)).strip().splitlines()[0][:300]
         log.warning("database refused a request's value: %s", reason)
-        return JSONResponse(error_body("invalid", f"a value of this request is not accepted by the database ({reason})"), status_code=422)
+        return JSONResponse(
+            error_body(
+                "invalid", f"a value of this request is not accepted by the database ({reason})"
+            ),
+            status_code=422,
+        )
 
     @app.exception_handler(OSError)
     async def _os_error(_: Request, exc: OSError) -> JSONResponse:
@@ -190,7 +237,10 @@ def install_error_handlers(app: FastAPI) -> None:
         # names first and rows commit after their files, so nothing half-written is visible.
         reason = exc.strerror or os.strerror(exc.errno or errno.ENOSPC)
         log.error("a write failed for want of space: %s", reason)
-        message = f"the service's data folder is full ({reason}): nothing of this request was stored; free space and retry"
+        message = (
+            f"the service's data folder is full ({reason}): nothing of this request was stored;"
+            " free space and retry"
+        )
         return JSONResponse(error_body("insufficient_storage", message), status_code=507)
 
     @app.exception_handler(Exception)

@@ -4,7 +4,7 @@ A key is ``csa_`` followed by a random secret of 32 bytes (URL-safe base64). The
 only its sha256, its first characters (the prefix that lists show) and its name, scope,
 expiry, creation, last use and revocation times; the key itself is shown once, when it is
 made. A request's key is hashed and looked up on every request, so a revocation or an expiry
-takes effect at the next request.
+takes effect at the next request. Making, listing and revoking keys: ``server/services/keys.py``.
 
 The keys of the settings (``CSA_API_KEYS``, or the one generated into ``data_dir/api_key``
 when none is configured; ``server/auth.py``) are admin keys that live outside the database.
@@ -20,12 +20,11 @@ import secrets
 from dataclasses import dataclass
 from typing import Literal, get_args
 
-from sqlalchemy import Select, or_, select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from server.db.models import ApiKey, utcnow
-from server.errors import APIError, conflict, invalid, not_found
+from server.errors import APIError, invalid
 
 Scope = Literal["device", "operator", "admin"]
 # Each scope allows everything the ones before it allow.
@@ -39,7 +38,12 @@ NAME_PATTERN = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,63}$")
 LAST_USED_RESOLUTION = dt.timedelta(seconds=60)  # last_used_at is written at most this often
 
 _DURATION = re.compile(r"^\s*(\d{1,6})\s*([mhdw])\s*$")
-_UNIT = {"m": dt.timedelta(minutes=1), "h": dt.timedelta(hours=1), "d": dt.timedelta(days=1), "w": dt.timedelta(weeks=1)}
+_UNIT = {
+    "m": dt.timedelta(minutes=1),
+    "h": dt.timedelta(hours=1),
+    "d": dt.timedelta(days=1),
+    "w": dt.timedelta(weeks=1),
+}
 
 
 @dataclass(frozen=True)
@@ -67,18 +71,24 @@ def parse_duration(text: str, field: str = "expires") -> dt.timedelta:
     """``30d``, ``12h``, ``90m`` or ``2w`` as a time span; a 422 naming ``field`` otherwise."""
     match = _DURATION.match(text or "")
     if match is None or int(match.group(1)) == 0:
-        raise invalid(field, f"{text!r} is not a duration (a positive number and a unit m, h, d or w: 30d, 12h)")
+        units = "a positive number and a unit m, h, d or w: 30d, 12h"
+        raise invalid(field, f"{text!r} is not a duration ({units})")
     return int(match.group(1)) * _UNIT[match.group(2)]
 
 
-GENERATED_KEY_NAME = "data-dir-api-key"  # the settings' generated key (CSA_API_KEYS#n cannot be a name)
+# The settings' generated key (CSA_API_KEYS#n cannot be a name).
+GENERATED_KEY_NAME = "data-dir-api-key"
 
 
 def check_name(name: str, field: str = "name") -> str:
     if not NAME_PATTERN.match(name):
-        raise invalid(field, f"{name!r} is not a key name (a letter, then up to 63 letters, digits, '_', '.' or '-')")
+        rule = "a letter, then up to 63 letters, digits, '_', '.' or '-'"
+        raise invalid(field, f"{name!r} is not a key name ({rule})")
     if name == GENERATED_KEY_NAME:
-        raise invalid(field, f"{name!r} names the generated settings key in the audit log; choose another name")
+        raise invalid(
+            field,
+            f"{name!r} names the generated settings key in the audit log; choose another name",
+        )
     return name
 
 
@@ -126,47 +136,3 @@ def principal_for_hash(db: Session, digest: str, settings_keys: dict[str, Princi
         key.last_used_at = now
         db.commit()
     return Principal(key.name, check_scope(key.scope), key.id)
-
-
-def create_key(db: Session, name: str, scope: str, expires_in: str | None = None) -> tuple[ApiKey, str]:
-    """A new key row and the key itself (shown once: only its hash is stored)."""
-    check_name(name)
-    scope = check_scope(scope)
-    expires_at = utcnow() + parse_duration(expires_in, "expires_in") if expires_in else None
-    if db.scalar(select(ApiKey.id).where(ApiKey.name == name)) is not None:
-        raise conflict(f"a key named {name!r} exists (names stay taken after revocation)", field="name")
-    for _ in range(3):  # a prefix collision (48 random bits) is retried with a new secret
-        key = new_key()
-        row = ApiKey(name=name, prefix=key[:PREFIX_CHARS], secret_sha256=hash_secret(key), scope=scope, expires_at=expires_at)
-        db.add(row)
-        try:
-            db.commit()
-            return row, key
-        except IntegrityError:
-            db.rollback()
-            if db.scalar(select(ApiKey.id).where(ApiKey.name == name)) is not None:
-                raise conflict(f"a key named {name!r} exists (names stay taken after revocation)", field="name") from None
-    raise APIError(500, "internal", "could not make a key with a unique prefix; try again")
-
-
-def find_key(db: Session, ref: str) -> ApiKey:
-    """A key by its name or by its prefix (as lists show it, with or without ``csa_``)."""
-    prefixes = {ref, KEY_PREFIX + ref} if not ref.startswith(KEY_PREFIX) else {ref}
-    key = db.scalar(select(ApiKey).where(or_(ApiKey.name == ref, ApiKey.prefix.in_(prefixes))).limit(1))
-    if key is None:
-        raise not_found("API key", ref)
-    return key
-
-
-def revoke_key(db: Session, ref: str) -> ApiKey:
-    """Revoke a key (kept for the audit log); revoking a revoked key changes nothing."""
-    key = find_key(db, ref)
-    if key.revoked_at is None:
-        key.revoked_at = utcnow()
-        db.commit()
-    return key
-
-
-def keys_query(include_revoked: bool = True) -> Select:
-    query = select(ApiKey).order_by(ApiKey.id)
-    return query if include_revoked else query.where(ApiKey.revoked_at.is_(None))

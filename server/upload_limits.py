@@ -11,25 +11,41 @@ import re
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from server.asgi import TrackingSend
+from server.asgi import BodyTooLarge, TrackingSend
 from server.errors import error_body
 from server.settings import Settings
 
 _MULTIPART_OVERHEAD = 1024 * 1024  # boundaries, headers and the small form fields
 
 
-class BodyTooLarge(Exception):
-    pass
-
-
 def limits_for(settings: Settings) -> list[tuple[re.Pattern[str], int, str]]:
     return [
-        (re.compile(r"^/api/v1/scenes/[^/]+/frames$"), 6 * settings.max_frame_upload_bytes + _MULTIPART_OVERHEAD, "frame upload"),
-        (re.compile(r"^/api/v1/scenes/[^/]+/archive$"), settings.max_archive_bytes + _MULTIPART_OVERHEAD, "archive"),
-        (re.compile(r"^/api/v1/models$"), settings.max_model_upload_bytes + _MULTIPART_OVERHEAD, "checkpoint"),
-        (re.compile(r"^/api/v1/predict$"), settings.max_inference_upload_bytes + _MULTIPART_OVERHEAD, "image"),
+        (
+            re.compile(r"^/api/v1/scenes/[^/]+/frames$"),
+            6 * settings.max_frame_upload_bytes + _MULTIPART_OVERHEAD,
+            "frame upload",
+        ),
+        (
+            re.compile(r"^/api/v1/scenes/[^/]+/archive$"),
+            settings.max_archive_bytes + _MULTIPART_OVERHEAD,
+            "archive",
+        ),
+        (
+            re.compile(r"^/api/v1/models$"),
+            settings.max_model_upload_bytes + _MULTIPART_OVERHEAD,
+            "checkpoint",
+        ),
+        (
+            re.compile(r"^/api/v1/predict$"),
+            settings.max_inference_upload_bytes + _MULTIPART_OVERHEAD,
+            "image",
+        ),
         # The dashboard's preview of a prediction (/ui/api/predict-preview): an image, as predict.
-        (re.compile(r"^/api/predict-preview$"), settings.max_inference_upload_bytes + _MULTIPART_OVERHEAD, "image"),
+        (
+            re.compile(r"^/api/predict-preview$"),
+            settings.max_inference_upload_bytes + _MULTIPART_OVERHEAD,
+            "image",
+        ),
     ]
 
 
@@ -42,7 +58,8 @@ class BodyLimitMiddleware:
         self.rules = limits_for(settings)
 
     def _limit(self, path: str) -> tuple[int, str]:
-        path = path.removeprefix("/ui")  # the dashboard serves the same routes under /ui/api/v1 (server/ui)
+        # The dashboard serves the same routes under /ui/api/v1 (server/app.py).
+        path = path.removeprefix("/ui")
         for pattern, limit, what in self.rules:
             if pattern.match(path):
                 return limit, what
@@ -89,6 +106,18 @@ class BodyLimitMiddleware:
 
     @staticmethod
     async def _reject(send: Send, what: str, limit: int) -> None:
-        body = json.dumps(error_body("too_large", f"{what} exceeds the limit of {limit} bytes", what)).encode()
-        await send({"type": "http.response.start", "status": 413, "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()), (b"connection", b"close")]})
+        body = json.dumps(
+            error_body("too_large", f"{what} exceeds the limit of {limit} bytes", what)
+        ).encode()
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 413,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"connection", b"close"),
+                ],
+            }
+        )
         await send({"type": "http.response.body", "body": body})

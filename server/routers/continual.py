@@ -1,66 +1,35 @@
-"""``/api/v1/metrics/continual``: the R matrix and continual-learning scores of a lineage."""
+"""``/api/v1/metrics/continual``: the R matrix and continual-learning scores of a lineage
+(``server/services/continual.py``)."""
 
 from __future__ import annotations
 
-import math
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query
-from sqlalchemy import select
 
-from csa_core.eval import continual_metrics
 from server.auth import OperatorScope
-from server.db.models import Evaluation, Scene
 from server.deps import DbDep
-from server.errors import not_found
-from server.lookups import current_model
-from server.registry import lineage_chain
 from server.schemas.common import ERROR_RESPONSES, Name
-from server.schemas.continual import ContinualMetricsOut, StepOut
+from server.schemas.continual import ContinualMetricsOut
+from server.services import continual as metrics
 
-router = APIRouter(prefix="/metrics", tags=["metrics"], responses=ERROR_RESPONSES, dependencies=[OperatorScope])
+router = APIRouter(
+    prefix="/metrics", tags=["metrics"], responses=ERROR_RESPONSES, dependencies=[OperatorScope]
+)
 
 
-@router.get("/continual", response_model=ContinualMetricsOut, summary="R matrix, ACC, A, FWT and BWT over the adaptation history")
+@router.get(
+    "/continual",
+    response_model=ContinualMetricsOut,
+    summary="R matrix, ACC, A, FWT and BWT over the adaptation history",
+)
 def continual(
     db: DbDep,
-    lineage: Annotated[Name | None, Query(description="default: the current model's lineage")] = None,
+    lineage: Annotated[
+        Name | None, Query(description="default: the current model's lineage")
+    ] = None,
     split: Annotated[Literal["val", "train", "all"], Query()] = "val",
 ) -> ContinualMetricsOut:
     """Step i is the i-th adaptation of the lineage (a version with an adapted scene), scene j
     the scene adapted to at step j. Entries come from evaluate and adapt jobs (latest wins)."""
-    if lineage is None:
-        cur = current_model(db)
-        if cur is None:
-            raise not_found("current model", "current")
-        lineage = cur.lineage
-    chain = lineage_chain(db, lineage)
-    if not chain:
-        raise not_found("lineage", lineage)
-    root = chain[0]
-    steps = [m for m in chain[1:] if m.adapted_scene_id is not None]
-    scene_ids = [m.adapted_scene_id for m in steps]
-    names = {i: n for i, n in db.execute(select(Scene.id, Scene.name).where(Scene.id.in_(scene_ids)))} if scene_ids else {}
-    latest: dict[tuple[int, int], float | None] = {}
-    model_ids = [root.id] + [m.id for m in steps]
-    for ev in db.scalars(select(Evaluation).where(Evaluation.model_version_id.in_(model_ids), Evaluation.split == split).order_by(Evaluation.id)):
-        latest[(ev.model_version_id, ev.scene_id)] = ev.miou
-    R = [[latest.get((m.id, sid)) for sid in scene_ids] for m in steps]
-    b = [latest.get((root.id, sid)) for sid in scene_ids]
-    missing = [f"R[{i}][{j}]" for i in range(len(steps)) for j in range(min(i + 2, len(steps))) if R[i][j] is None]
-    missing += [f"b[{j}]" for j in range(len(steps)) if b[j] is None]
-    scores: dict[str, float | None] = {"acc": None, "a": None, "fwt": None, "bwt": None}
-    if steps and not missing:
-        nan = float("nan")
-        raw = continual_metrics([[nan if v is None else v for v in row] for row in R], [nan if v is None else v for v in b])
-        scores = {k: (v if math.isfinite(v) else None) for k, v in raw.items()}
-    return ContinualMetricsOut(
-        lineage=lineage,
-        root_model_id=root.id,
-        split=split,
-        steps=[StepOut(step=i, model_id=m.id, model=m.name, scene_id=m.adapted_scene_id, scene=names.get(m.adapted_scene_id)) for i, m in enumerate(steps)],
-        R=R,
-        b=b,
-        missing=missing,
-        **scores,
-    )
+    return metrics.continual_metrics(db, lineage, split)

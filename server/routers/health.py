@@ -1,17 +1,14 @@
-"""``/health``: liveness and readiness without an API key."""
+"""``/health``: liveness and readiness without an API key (``server/services/status.py``)."""
 
 from __future__ import annotations
 
-import datetime as dt
-
 from fastapi import APIRouter
-from sqlalchemy import func, select, text
 
 from csa_core import __version__
 from server import capabilities
-from server.db.models import Worker, utcnow
 from server.deps import DbDep, ServicesDep
 from server.schemas.health import HealthOut
+from server.services import status
 
 router = APIRouter(tags=["health"])
 
@@ -19,10 +16,9 @@ router = APIRouter(tags=["health"])
 @router.get("/health", response_model=HealthOut, summary="service health (no API key needed)")
 def health(db: DbDep, services: ServicesDep) -> HealthOut:
     try:
-        db.execute(text("SELECT 1"))
+        status.check_database(db)
         database = "ok"
-        horizon = utcnow() - dt.timedelta(seconds=3 * services.settings.heartbeat_seconds + services.settings.worker_poll_seconds + 5)
-        alive = db.scalar(select(func.count(Worker.id)).where(Worker.stopped_at.is_(None), Worker.heartbeat_at >= horizon)) or 0
+        alive = status.workers_alive(db, services.settings)
     except Exception as e:  # noqa: BLE001 - health reports, it does not fail
         database, alive = f"error: {type(e).__name__}", 0
     return HealthOut(

@@ -1,4 +1,5 @@
-"""``/api/v1/predict``: an image in, a NYU40 label map out (PNG), from any model version."""
+"""``/api/v1/predict``: an image in, a NYU40 label map out (PNG), from any model version
+(``server/services/models.py`` names its checkpoint)."""
 
 from __future__ import annotations
 
@@ -20,11 +21,14 @@ from server.auth import DeviceScope
 from server.deps import DbDep, FormPartsChecked, ServicesDep
 from server.errors import invalid, not_available, too_large
 from server.image_headers import image_format, image_size
-from server.lookups import get_model
-from server.registry import checkpoint_sha
 from server.schemas.common import ERROR_RESPONSES
+from server.services import models
 
-router = APIRouter(tags=["inference"], responses={**ERROR_RESPONSES, 413: ERROR_RESPONSES[422], 501: ERROR_RESPONSES[422]}, dependencies=[DeviceScope])
+router = APIRouter(
+    tags=["inference"],
+    responses={**ERROR_RESPONSES, 413: ERROR_RESPONSES[422], 501: ERROR_RESPONSES[422]},
+    dependencies=[DeviceScope],
+)
 
 
 def _png(img: np.ndarray) -> bytes:
@@ -37,7 +41,12 @@ def _png(img: np.ndarray) -> bytes:
 @router.post(
     "/predict",
     response_class=Response,
-    responses={200: {"content": {"image/png": {}}, "description": "uint8 NYU40 ids (format=ids) or the palette picture (format=color)"}},
+    responses={
+        200: {
+            "content": {"image/png": {}},
+            "description": "uint8 NYU40 ids (format=ids) or the palette picture (format=color)",
+        }
+    },
     summary="label an RGB image with the current or a named model version",
     dependencies=[FormPartsChecked],
 )
@@ -46,7 +55,9 @@ async def predict(
     db: DbDep,
     services: ServicesDep,
     image: Annotated[UploadFile, File(description="8-bit RGB image, PNG or JPEG")],
-    model: Annotated[str | None, Form(max_length=128, description="model version id or name (default: current)")] = None,
+    model: Annotated[
+        str | None, Form(max_length=128, description="model version id or name (default: current)")
+    ] = None,
     format: Annotated[Literal["ids", "color"], Form()] = "ids",
 ) -> Response:
     reason = capabilities.missing_reason("seg")
@@ -56,14 +67,17 @@ async def predict(
     data = await image.read(limit + 1)
     if len(data) > limit:
         raise too_large("image", limit)
-    version = get_model(db, model)
-    sha, name, version_id = checkpoint_sha(version), version.name, version.id
+    checkpoint = models.checkpoint_of(db, model)
+    sha, name, version_id = checkpoint.sha256, checkpoint.model_name, checkpoint.model_id
     db.close()
     fmt, size = image_format(data), image_size(data)
     if fmt is None or size is None:
         raise invalid("image", "cannot decode image (not a PNG or JPEG file)")
-    if size[0] * size[1] > services.settings.max_image_pixels or min(size) < 1:
-        raise invalid("image", f"image is {size[0]}x{size[1]}, more than the limit of {services.settings.max_image_pixels} pixels")
+    max_pixels = services.settings.max_image_pixels
+    if size[0] * size[1] > max_pixels or min(size) < 1:
+        raise invalid(
+            "image", f"image is {size[0]}x{size[1]}, more than the limit of {max_pixels} pixels"
+        )
     model_cache = request.app.state.model_cache
 
     def label() -> bytes:
@@ -75,9 +89,17 @@ async def predict(
             except CSAInputError as e:
                 raise invalid("image", e.problem) from None
         labels = model_cache.predict(sha, rgb)
-        return _png(labels.astype(np.uint8)) if format == "ids" else _png(cv2.cvtColor(colorize(labels), cv2.COLOR_RGB2BGR))
+        return (
+            _png(labels.astype(np.uint8))
+            if format == "ids"
+            else _png(cv2.cvtColor(colorize(labels), cv2.COLOR_RGB2BGR))
+        )
 
     # Decoding, the network and encoding the answer take a while: in a worker thread, so that
     # the event loop keeps serving every other request meanwhile.
     body = await run_in_threadpool(label)
-    return Response(body, media_type="image/png", headers={"X-CSA-Model-Id": str(version_id), "X-CSA-Model": name})
+    return Response(
+        body,
+        media_type="image/png",
+        headers={"X-CSA-Model-Id": str(version_id), "X-CSA-Model": name},
+    )

@@ -2,30 +2,23 @@
 
 from __future__ import annotations
 
-import datetime as dt
 import time
 
 from fastapi import APIRouter, Request
 from fastapi.responses import PlainTextResponse
-from sqlalchemy import func, select
 
 from server.auth import OperatorScope
-from server.db.models import (
-    Artifact,
-    Frame,
-    Job,
-    ModelVersion,
-    NerfCheckpoint,
-    Scene,
-    Worker,
-    utcnow,
-)
 from server.deps import DbDep, ServicesDep
 from server.jobs.queue import STATUSES
 from server.request_metrics import BUCKETS, RequestStats
 from server.schemas.common import ERROR_RESPONSES
+from server.services import status
 
-router = APIRouter(tags=["metrics"], responses={401: ERROR_RESPONSES[401], 403: ERROR_RESPONSES[403]}, dependencies=[OperatorScope])
+router = APIRouter(
+    tags=["metrics"],
+    responses={401: ERROR_RESPONSES[401], 403: ERROR_RESPONSES[403]},
+    dependencies=[OperatorScope],
+)
 
 
 def _esc(v: str) -> str:
@@ -36,7 +29,9 @@ def _labels(**kv: str) -> str:
     return "{" + ",".join(f'{k}="{_esc(str(v))}"' for k, v in kv.items()) + "}"
 
 
-@router.get("/metrics", response_class=PlainTextResponse, summary="Prometheus metrics (text format 0.0.4)")
+@router.get(
+    "/metrics", response_class=PlainTextResponse, summary="Prometheus metrics (text format 0.0.4)"
+)
 def metrics(request: Request, db: DbDep, services: ServicesDep) -> PlainTextResponse:
     stats: RequestStats = request.app.state.request_stats
     counts, lsum, lcount, lbuckets = stats.snapshot()
@@ -47,35 +42,47 @@ def metrics(request: Request, db: DbDep, services: ServicesDep) -> PlainTextResp
         out.append(f"# TYPE {name} {kind}")
 
     head("csa_http_requests_total", "counter", "HTTP requests by method, route and status.")
-    for (method, route, status), n in sorted(counts.items()):
-        out.append(f"csa_http_requests_total{_labels(method=method, route=route, status=status)} {n}")
+    for (method, route, code), n in sorted(counts.items()):
+        out.append(f"csa_http_requests_total{_labels(method=method, route=route, status=code)} {n}")
     head("csa_http_request_duration_seconds", "histogram", "HTTP request latency.")
+    name = "csa_http_request_duration_seconds"
     for (method, route), buckets in sorted(lbuckets.items()):
         for bound, n in zip(BUCKETS, buckets, strict=True):
-            out.append(f"csa_http_request_duration_seconds_bucket{_labels(method=method, route=route, le=str(bound))} {n}")
-        out.append(f"csa_http_request_duration_seconds_bucket{_labels(method=method, route=route, le='+Inf')} {lcount[(method, route)]}")
-        out.append(f"csa_http_request_duration_seconds_sum{_labels(method=method, route=route)} {lsum[(method, route)]:.6f}")
-        out.append(f"csa_http_request_duration_seconds_count{_labels(method=method, route=route)} {lcount[(method, route)]}")
+            out.append(f"{name}_bucket{_labels(method=method, route=route, le=str(bound))} {n}")
+        count = lcount[(method, route)]
+        out.append(f"{name}_bucket{_labels(method=method, route=route, le='+Inf')} {count}")
+        out.append(f"{name}_sum{_labels(method=method, route=route)} {lsum[(method, route)]:.6f}")
+        out.append(f"{name}_count{_labels(method=method, route=route)} {count}")
 
     head("csa_jobs", "gauge", "Jobs by kind and status.")
-    by = {(k, s): n for k, s, n in db.execute(select(Job.kind, Job.status, func.count(Job.id)).group_by(Job.kind, Job.status))}
+    by = status.job_counts(db)
     kinds = sorted({k for k, _ in by}) or []
     for kind in kinds:
-        for status in STATUSES:
-            out.append(f"csa_jobs{_labels(kind=kind, status=status)} {by.get((kind, status), 0)}")
+        for job_status in STATUSES:
+            n = by.get((kind, job_status), 0)
+            out.append(f"csa_jobs{_labels(kind=kind, status=job_status)} {n}")
 
     def gauge(name: str, help_: str, value: float) -> None:
         head(name, "gauge", help_)
         out.append(f"{name} {value}")
 
-    gauge("csa_scenes", "Stored scenes.", db.scalar(select(func.count(Scene.id))) or 0)
-    gauge("csa_frames", "Stored frames.", db.scalar(select(func.count(Frame.id))) or 0)
-    gauge("csa_model_versions", "Model versions in the registry.", db.scalar(select(func.count(ModelVersion.id))) or 0)
-    gauge("csa_memory_bank_bytes", "Bytes of the active NeRF checkpoints.", db.scalar(select(func.coalesce(func.sum(NerfCheckpoint.size_bytes), 0)).where(NerfCheckpoint.active.is_(True))) or 0)
-    gauge("csa_memory_bank_scenes", "Scenes with a NeRF in the memory bank.", db.scalar(select(func.count(func.distinct(NerfCheckpoint.scene_id))).where(NerfCheckpoint.active.is_(True))) or 0)
-    gauge("csa_artifact_bytes", "Bytes in the artifact store.", db.scalar(select(func.coalesce(func.sum(Artifact.size_bytes), 0))) or 0)
-    horizon = utcnow() - dt.timedelta(seconds=3 * services.settings.heartbeat_seconds + services.settings.worker_poll_seconds + 5)
-    gauge("csa_workers_alive", "Workers with a recent heartbeat.", db.scalar(select(func.count(Worker.id)).where(Worker.stopped_at.is_(None), Worker.heartbeat_at >= horizon)) or 0)
-    gauge("csa_uptime_seconds", "Seconds since the API started.", round(time.time() - stats.started, 3))
-    return PlainTextResponse("\n".join(out) + "\n", media_type="text/plain; version=0.0.4; charset=utf-8")
-
+    stored = status.stored(db)
+    gauge("csa_scenes", "Stored scenes.", stored.scenes)
+    gauge("csa_frames", "Stored frames.", stored.frames)
+    gauge("csa_model_versions", "Model versions in the registry.", stored.model_versions)
+    gauge(
+        "csa_memory_bank_bytes", "Bytes of the active NeRF checkpoints.", stored.memory_bank_bytes
+    )
+    gauge(
+        "csa_memory_bank_scenes",
+        "Scenes with a NeRF in the memory bank.",
+        stored.memory_bank_scenes,
+    )
+    gauge("csa_artifact_bytes", "Bytes in the artifact store.", stored.artifact_bytes)
+    alive = status.workers_alive(db, services.settings)
+    gauge("csa_workers_alive", "Workers with a recent heartbeat.", alive)
+    uptime = round(time.time() - stats.started, 3)
+    gauge("csa_uptime_seconds", "Seconds since the API started.", uptime)
+    return PlainTextResponse(
+        "\n".join(out) + "\n", media_type="text/plain; version=0.0.4; charset=utf-8"
+    )

@@ -1,4 +1,5 @@
-"""``/api/v1/scenes/{scene}/render``: colour, depth and labels from a scene's NeRF at any view."""
+"""``/api/v1/scenes/{scene}/render``: colour, depth and labels from a scene's NeRF at any view
+(the NeRF and the camera: ``server/services/nerfs.py``)."""
 
 from __future__ import annotations
 
@@ -8,29 +9,27 @@ import cv2
 import numpy as np
 from fastapi import APIRouter, Request
 
-from csa_core.data.camera import Intrinsics
 from csa_core.data.image_files import depth_to_mm
 from csa_core.data.label_images import colorize
 from server import capabilities
 from server.auth import OperatorScope
-from server.db.models import NerfCheckpoint
 from server.deps import DbDep, ServicesDep
-from server.errors import invalid, not_available, not_found
-from server.lookups import active_nerf, get_scene
+from server.errors import not_available
 from server.nerf_cache import NerfCache
 from server.schemas.common import ERROR_RESPONSES, ErrorBody
 from server.schemas.rendering import RenderOut, RenderRequest
+from server.services import nerfs
 
 BUSY = {
     "model": ErrorBody,
     "description": "every render of this API process stayed busy for `CSA_RENDER_QUEUE_SECONDS` "
-    "(code `render_busy`, `Retry-After` in seconds; docs/operations.md \"Rendering\")",
+    '(code `render_busy`, `Retry-After` in seconds; docs/operations.md "Rendering")',
 }
 router = APIRouter(
-    tags=["rendering"], responses={**ERROR_RESPONSES, 501: ERROR_RESPONSES[422], 503: BUSY}, dependencies=[OperatorScope]
+    tags=["rendering"],
+    responses={**ERROR_RESPONSES, 501: ERROR_RESPONSES[422], 503: BUSY},
+    dependencies=[OperatorScope],
 )
-
-MAX_RENDER_PIXELS = 1024 * 1024
 
 
 def _png(img: np.ndarray) -> str:
@@ -40,30 +39,21 @@ def _png(img: np.ndarray) -> str:
     return base64.b64encode(buf.tobytes()).decode("ascii")
 
 
-@router.post("/scenes/{scene_ref}/render", response_model=RenderOut, summary="render a view of the scene's NeRF")
-async def render(scene_ref: str, body: RenderRequest, request: Request, db: DbDep, services: ServicesDep) -> RenderOut:
+@router.post(
+    "/scenes/{scene_ref}/render",
+    response_model=RenderOut,
+    summary="render a view of the scene's NeRF",
+)
+async def render(
+    scene_ref: str, body: RenderRequest, request: Request, db: DbDep, services: ServicesDep
+) -> RenderOut:
     reason = capabilities.missing_reason("nerf")
     if reason is not None:
         raise not_available(reason)
     pose = np.asarray(body.pose, dtype=np.float64)  # a rigid transform (schemas.common.Pose)
-    scene = get_scene(db, scene_ref)
-    if body.nerf_id is not None:
-        nerf = db.get(NerfCheckpoint, body.nerf_id)
-        if nerf is None or nerf.scene_id != scene.id:
-            raise not_found("NeRF", body.nerf_id)
-    else:
-        nerf = active_nerf(db, scene.id)
-        if nerf is None:
-            raise not_found("NeRF of scene", scene.name)
-    if body.intrinsics is not None:
-        intr = body.intrinsics.camera()
-    elif scene.intrinsics is not None:
-        intr = Intrinsics.from_dict(scene.intrinsics)
-    else:
-        raise invalid("intrinsics", "the scene has no camera; give intrinsics")
-    if intr.width * intr.height > MAX_RENDER_PIXELS:
-        raise invalid("intrinsics", f"{intr.width}x{intr.height} is more than {MAX_RENDER_PIXELS} pixels")
-    files, nerf_id = dict(nerf.files), nerf.id
+    camera = body.intrinsics.camera() if body.intrinsics is not None else None
+    target = nerfs.render_target(db, scene_ref, body.nerf_id, camera)
+    intr, nerf_id, files = target.camera, target.nerf.id, target.nerf.files
     db.close()
     cache: NerfCache = request.app.state.nerf_cache
     channels = list(dict.fromkeys(body.channels))
@@ -86,4 +76,10 @@ async def render(scene_ref: str, body: RenderRequest, request: Request, db: DbDe
     # CSA_RENDER_CONCURRENCY at once; 503 after CSA_RENDER_QUEUE_SECONDS of waiting): the
     # event loop serves other requests meanwhile (server/nerf_cache.py).
     images = await cache.run(render_and_encode)
-    return RenderOut(scene_id=scene.id, nerf_id=nerf_id, width=intr.width, height=intr.height, images=images)
+    return RenderOut(
+        scene_id=target.scene_id,
+        nerf_id=nerf_id,
+        width=intr.width,
+        height=intr.height,
+        images=images,
+    )

@@ -4,13 +4,19 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
+from fastapi import Path
 from pydantic import BaseModel, ConfigDict, Field
 
 from csa_core.data.camera import parse_size
+from server.db.models import MAX_ID
 from server.schemas.common import JsonObject, Name, RecordOut, Ref, Timestamp, core_rule
 
 # An image size, checked by the core's parser of sizes (the CLI's rule).
-Size = Annotated[str, Field(pattern=r"^[0-9]{1,4}x[0-9]{1,4}$", description="WxH, e.g. 160x120"), core_rule("size", lambda text: parse_size(text, "size"))]
+Size = Annotated[
+    str,
+    Field(pattern=r"^[0-9]{1,4}x[0-9]{1,4}$", description="WxH, e.g. 160x120"),
+    core_rule("size", lambda text: parse_size(text, "size")),
+]
 
 
 class _Params(BaseModel):
@@ -23,12 +29,19 @@ class FitNerfParams(_Params):
     scene: Ref
     labels: Literal["predictions", "ground_truth", "none"] = Field(
         default="predictions",
-        description="labels to fuse: the model's predictions (the method), the uploaded ground truth (oracle), or none",
+        description="labels to fuse: the model's predictions (the method), the uploaded ground "
+        "truth (oracle), or none",
     )
-    model: Ref | None = Field(default=None, description="model version that predicts the labels (default: current)")
+    model: Ref | None = Field(
+        default=None, description="model version that predicts the labels (default: current)"
+    )
     preset: Literal["fast", "reference"] = "fast"
-    steps: int | None = Field(default=None, ge=1, le=200_000, description="override the preset's step count")
-    size: Size | None = Field(default=None, description="working size (default: the scene's colour size)")
+    steps: int | None = Field(
+        default=None, ge=1, le=200_000, description="override the preset's step count"
+    )
+    size: Size | None = Field(
+        default=None, description="working size (default: the scene's colour size)"
+    )
     # Smaller fits for previews and tests; the presets' values otherwise.
     rays_per_step: int | None = Field(default=None, ge=16, le=65_536)
     occupancy_resolution: int | None = Field(default=None, ge=8, le=512)
@@ -39,7 +52,12 @@ class EvaluateParams(_Params):
     """Score a model version on scenes with ground-truth labels (fills the R matrix)."""
 
     model: Ref | None = Field(default=None, description="model version (default: current)")
-    scenes: list[Ref] | None = Field(default=None, min_length=1, max_length=1000, description="default: every scene labelled on all frames")
+    scenes: list[Ref] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=1000,
+        description="default: every scene labelled on all frames",
+    )
     split: Literal["val", "train", "all"] = "val"
 
 
@@ -48,15 +66,25 @@ class PretrainParams(_Params):
 
     scenes: list[Ref] = Field(min_length=1, max_length=1000)
     val_scenes: list[Ref] | None = Field(default=None, max_length=1000)
-    arch: str | None = Field(default=None, max_length=64, description="default: the light CPU network")
+    arch: str | None = Field(
+        default=None, max_length=64, description="default: the light CPU network"
+    )
     epochs: int = Field(default=12, ge=1, le=10_000)
     batch_size: int = Field(default=8, ge=1, le=1024)
     lr: float = Field(default=2e-3, gt=0, le=1.0)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
-    size: Size | None = Field(default=None, description="training size (default: the first scene's colour size)")
-    name: Name | None = Field(default=None, description="name of the new model version (default: pretrain-<job id>)")
-    lineage: Name | None = Field(default=None, description="name of the new lineage (default: the model name)")
-    make_current: bool | None = Field(default=None, description="default: when no model is current yet")
+    size: Size | None = Field(
+        default=None, description="training size (default: the first scene's colour size)"
+    )
+    name: Name | None = Field(
+        default=None, description="name of the new model version (default: pretrain-<job id>)"
+    )
+    lineage: Name | None = Field(
+        default=None, description="name of the new lineage (default: the model name)"
+    )
+    make_current: bool | None = Field(
+        default=None, description="default: when no model is current yet"
+    )
 
 
 class AdaptParams(_Params):
@@ -64,10 +92,25 @@ class AdaptParams(_Params):
     replay from the memory bank (``csa_core.adapt``)."""
 
     scene: Ref
-    model: Ref | None = Field(default=None, description="selects the lineage (default: the current model's); the job adapts that lineage's newest version when it starts")
-    preset: str = Field(default="cpu", max_length=32, description="adaptation preset of csa_core.adapt: paper, cpu or tiny")
-    mode: Literal["joint", "ni_nl", "gi_nl"] | None = Field(default=None, description="default: the preset's (joint training)")
-    seed: int = Field(default=0, ge=0, le=2**31 - 1, description="seed of every random step (NeRF, fine-tuning, replay), as csa adapt --seed")
+    model: Ref | None = Field(
+        default=None,
+        description="selects the lineage (default: the current model's); the job adapts that "
+        "lineage's newest version when it starts",
+    )
+    preset: str = Field(
+        default="cpu",
+        max_length=32,
+        description="adaptation preset of csa_core.adapt: paper, cpu or tiny",
+    )
+    mode: Literal["joint", "ni_nl", "gi_nl"] | None = Field(
+        default=None, description="default: the preset's (joint training)"
+    )
+    seed: int = Field(
+        default=0,
+        ge=0,
+        le=2**31 - 1,
+        description="seed of every random step (NeRF, fine-tuning, replay), as csa adapt --seed",
+    )
     make_current: bool = True
 
 
@@ -91,9 +134,13 @@ class AdaptJob(BaseModel):
     params: AdaptParams
 
 
-JobCreate = Annotated[FitNerfJob | EvaluateJob | PretrainJob | AdaptJob, Field(discriminator="kind")]
+JobCreate = Annotated[
+    FitNerfJob | EvaluateJob | PretrainJob | AdaptJob, Field(discriminator="kind")
+]
 
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+
+JobId = Annotated[int, Path(ge=1, le=MAX_ID)]  # a job's id in a route's path (/jobs/{job_id})
 
 
 class JobOut(RecordOut):

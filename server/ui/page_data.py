@@ -1,9 +1,9 @@
 """What the dashboard's pages show, gathered from the service's own answers.
 
-Pages read the same objects the REST API answers with (``scene_out``, ``model_out``, the
-continual and memory-bank routes), plus a few summaries only a person looking at a page
-needs: the depth coverage of a scene, a model lineage as a tree, the memory bank's cost
-against what the baselines would keep.
+Pages read the same objects the REST API answers with, from the same functions of the
+service layer (``server/services``: scenes, model versions, the memory bank, continual
+metrics), plus a few summaries only a person looking at a page needs: the depth coverage of a
+scene, a model lineage as a tree, the memory bank's cost against what the baselines would keep.
 """
 
 from __future__ import annotations
@@ -18,26 +18,19 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from csa_core.data.image_files import read_depth_mm
 from csa_core.data.scene import split_point
 from server.artifacts import ArtifactStore
-from server.db.models import Frame
 from server.errors import APIError
 from server.keys import Principal
-from server.lookups import active_nerf, current_model
 from server.model_cache import ModelCache
-from server.registry import checkpoint_sha
-from server.routers import continual as continual_route
-from server.routers import memory as memory_route
-from server.routers import models as models_route
-from server.routers import scenes as scenes_route
 from server.schemas.continual import ContinualMetricsOut
 from server.schemas.memory import NerfOut
 from server.schemas.models import ModelOut
 from server.schemas.scenes import SceneOut
+from server.services import continual, frames, models, nerfs, scenes
 
 if TYPE_CHECKING:
     from csa_core.experiments.report import Plot
@@ -111,17 +104,13 @@ class SceneRow:
     nerf_quality: list[tuple[str, str]]
 
 
-def scene_rows(db: Session, coverage: DepthCoverage, visible_to: Principal | None = None) -> list[SceneRow]:
-    bank = {e.scene_id: e for e in memory_route.memory_bank(db, include_inactive=False).entries}
+def scene_rows(
+    db: Session, coverage: DepthCoverage, visible_to: Principal | None = None
+) -> list[SceneRow]:
+    bank = {e.scene_id: e for e in nerfs.memory_bank(db, include_inactive=False).entries}
     rows = []
-    for scene in scenes_route.all_scenes(db, visible_to):
-        shas = list(
-            db.scalars(
-                select(Frame.depth_sha256)
-                .where(Frame.scene_id == scene.id)
-                .order_by(Frame.order_key, Frame.name)
-            )
-        )
+    for scene in scenes.all_scenes(db, visible_to):
+        shas = frames.depth_files(db, scene.id)
         nerf = bank.get(scene.id)
         rows.append(
             SceneRow(scene, coverage(shas), nerf, quality_items(nerf.quality) if nerf else [])
@@ -144,10 +133,10 @@ class Lineage:
 
 def lineages(db: Session) -> list[Lineage]:
     """Every lineage as a tree of versions (a version's children were adapted from it)."""
-    models = models_route.all_models(db)
-    nodes = {m.id: ModelNode(m) for m in models}
+    versions = models.all_models(db)
+    nodes = {m.id: ModelNode(m) for m in versions}
     by_lineage: dict[str, Lineage] = {}
-    for m in models:
+    for m in versions:
         lin = by_lineage.setdefault(m.lineage, Lineage(m.lineage, [], []))
         lin.versions.append(m)
         parent = nodes.get(m.parent_id) if m.parent_id is not None else None
@@ -174,7 +163,7 @@ def continual_metrics(
 ) -> ContinualMetricsOut | None:
     """The continual route's answer, or None when there is no model (or lineage) to show."""
     try:
-        return continual_route.continual(db, lineage=lineage, split=split)
+        return continual.continual_metrics(db, lineage, split)
     except APIError as e:
         if e.status == 404:
             return None
@@ -264,29 +253,29 @@ def cotta_bytes(db: Session, cache: ModelCache) -> tuple[int | None, str | None,
     current network, measured on the loaded network."""
     from server import capabilities
 
-    model = current_model(db)
-    if model is None:
+    checkpoint = models.current_checkpoint(db)
+    if checkpoint is None:
         return None, None, "no current model"
     reason = capabilities.missing_reason("seg")
     if reason is not None:
-        return None, model.name, reason
+        return None, checkpoint.model_name, reason
     from csa_core.adapt.baselines.cotta import CoTTAFootprint, module_bytes
 
-    net, _ = cache.get(checkpoint_sha(model))
+    net, _ = cache.get(checkpoint.sha256)
     one = module_bytes(net)
     return (
         CoTTAFootprint(teacher_bytes=one, source_bytes=one, optimizer_bytes=0).extra_copies_bytes,
-        model.name,
+        checkpoint.model_name,
         None,
     )
 
 
 def memory_summary(db: Session, cache: ModelCache) -> MemorySummary:
-    bank = memory_route.memory_bank(db, include_inactive=False)
-    scenes = {s.id: s for s in scenes_route.all_scenes(db)}
+    bank = nerfs.memory_bank(db, include_inactive=False)
+    by_id = {s.id: s for s in scenes.all_scenes(db)}
     rows = []
     for entry in bank.entries:
-        scene = scenes.get(entry.scene_id)
+        scene = by_id.get(entry.scene_id)
         if scene is None or scene.intrinsics is None:
             rows.append(
                 MemoryRow(
@@ -308,15 +297,9 @@ def nerf_scenes(db: Session) -> list[tuple[SceneOut, list[str]]]:
     """Scenes with a NeRF in the memory bank and the names of their training frames (the
     poses a NeRF was fitted on: the first part of the frames in order)."""
     out = []
-    for scene in scenes_route.all_scenes(db):
-        if not scene.has_nerf or active_nerf(db, scene.id) is None:
+    for scene in scenes.all_scenes(db):
+        if not scene.has_nerf:
             continue
-        names = list(
-            db.scalars(
-                select(Frame.name)
-                .where(Frame.scene_id == scene.id)
-                .order_by(Frame.order_key, Frame.name)
-            )
-        )
+        names = frames.names_in_order(db, scene.id)
         out.append((scene, names[: split_point(len(names))]))
     return out

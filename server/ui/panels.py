@@ -20,7 +20,6 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from csa_core.data import image_files
@@ -32,11 +31,10 @@ from server.artifacts import ArtifactStore
 from server.db.models import Frame, Scene
 from server.errors import invalid, not_available, not_found
 from server.image_headers import image_format, image_size
-from server.lookups import active_nerf, get_model
 from server.model_cache import ModelCache
 from server.nerf_cache import NerfCache
-from server.registry import checkpoint_sha
-from server.routers.rendering import MAX_RENDER_PIXELS
+from server.services.models import checkpoint_of
+from server.services.nerfs import MAX_RENDER_PIXELS, active_nerf_files
 
 Panel = Literal["prediction", "pseudo", "truth", "overlay"]
 PANELS: tuple[str, ...] = ("prediction", "pseudo", "truth", "overlay")
@@ -53,13 +51,6 @@ def png(rgb_or_ids: np.ndarray) -> bytes:
 
 def b64png(image: np.ndarray) -> str:
     return base64.b64encode(png(image)).decode("ascii")
-
-
-def frame_of(db: Session, scene: Scene, name: str) -> Frame:
-    frame = db.scalar(select(Frame).where(Frame.scene_id == scene.id, Frame.name == name))
-    if frame is None:
-        raise not_found("frame", name)
-    return frame
 
 
 @dataclass(frozen=True)
@@ -119,13 +110,13 @@ class LabelMaps:
 
 def panel_source(db: Session, scene: Scene, frame: Frame, panel: str) -> PanelSource:
     """Resolve what ``panel`` needs, or answer why it cannot be drawn (404 / 501)."""
-    nerf = active_nerf(db, scene.id) if panel in ("pseudo", "overlay") else None
+    nerf = active_nerf_files(db, scene.id) if panel in ("pseudo", "overlay") else None
     model_sha = None
     if panel == "prediction" or (panel == "overlay" and nerf is None):
         reason = capabilities.missing_reason("seg")
         if reason is not None:
             raise not_available(reason)
-        model_sha = checkpoint_sha(get_model(db, None))
+        model_sha = checkpoint_of(db, None).sha256
     if panel == "pseudo":
         reason = capabilities.missing_reason("nerf")
         if reason is not None:
@@ -140,7 +131,7 @@ def panel_source(db: Session, scene: Scene, frame: Frame, panel: str) -> PanelSo
         labels_sha=frame.labels_sha256 if panel == "truth" else None,
         model_sha=model_sha,
         nerf_id=nerf.id if nerf is not None else None,
-        nerf_files=dict(nerf.files) if nerf is not None else None,
+        nerf_files=nerf.files if nerf is not None else None,
         pose=frame.pose if nerf is not None else None,
         intrinsics=dict(scene.intrinsics) if scene.intrinsics else None,
     )
@@ -219,8 +210,8 @@ def predict_preview(
     reason = capabilities.missing_reason("seg")
     if reason is not None:
         raise not_available(reason)
-    model = get_model(db, None)
-    sha, name, model_id = checkpoint_sha(model), model.name, model.id
+    checkpoint = checkpoint_of(db, None)
+    sha, name, model_id = checkpoint.sha256, checkpoint.model_name, checkpoint.model_id
     db.close()
     size = image_size(data) if image_format(data) is not None else None
     if size is None:

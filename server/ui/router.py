@@ -1,9 +1,12 @@
-"""The dashboard at ``/ui``: server-rendered pages, their pictures, and the REST API again
-under ``/ui/api/v1`` for the pages' scripts, with the session cookie instead of a key header.
+"""The dashboard at ``/ui``: server-rendered pages, their pictures and a few actions of their
+own, reading and changing the service's state through the service layer (``server/services``),
+as the REST routers do.
 
-The REST routers are included a second time rather than re-implemented, so every answer,
-check and error is the one ``/api/v1`` gives; only authentication differs (see
-``server/ui/session.py``). The REST API under ``/api/v1`` never reads the cookie.
+The pages' scripts call the REST API again under ``/ui/api/v1``, with the session cookie
+instead of a key header: ``server/app.py`` includes the REST routers a second time there
+rather than re-implementing them, so every answer, check and error is the one ``/api/v1``
+gives; only authentication differs (:func:`server.ui.session.require_ui_session`). The REST
+API under ``/api/v1`` never reads the cookie.
 """
 
 from __future__ import annotations
@@ -30,31 +33,17 @@ from fastapi import (
 )
 from fastapi.responses import FileResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
-from sqlalchemy import func, select
 from starlette.concurrency import run_in_threadpool
 
 from csa_core.data.scene import split_point
 from server import capabilities
 from server.auth import DeviceScope, OperatorScope, SceneAccess, check_scene_access
 from server.deps import DbDep, ServicesDep
-from server.errors import APIError, conflict, not_available, not_found, too_large
-from server.jobs import queue
-from server.jobs.kinds import KINDS
+from server.errors import APIError, not_found, too_large
+from server.jobs.queue import TERMINAL
 from server.keys import ADMIN, DEVICE, OPERATOR, Principal, Scope
-from server.lookups import active_nerf, current_model, get_job, get_scene
-from server.registry import root_conflict
-from server.routers import (
-    admin,
-    continual,
-    frames,
-    inference,
-    jobs,
-    memory,
-    models,
-    rendering,
-    scenes,
-)
-from server.schemas.jobs import JobOut
+from server.schemas.jobs import JobId, JobOut
+from server.services import audit, frames, jobs, models, nerfs, scenes
 from server.ui import page_data, panels
 from server.ui.session import (
     COOKIE,
@@ -77,7 +66,11 @@ HERE = Path(__file__).resolve().parent
 STATIC = {p.name: p for p in (HERE / "static").iterdir() if p.suffix in (".css", ".js", ".svg")}
 FRAMES_PER_PAGE = 40
 # Pages allow their own scripts and styles only; inline style attributes carry data colours.
-CSP = "default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; connect-src 'self'; form-action 'self'; frame-ancestors 'none'; base-uri 'none'; object-src 'none'"
+CSP = (
+    "default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data: blob:; connect-src 'self'; form-action 'self'; "
+    "frame-ancestors 'none'; base-uri 'none'; object-src 'none'"
+)
 PAGE_HEADERS = {
     "Content-Security-Policy": CSP,
     "X-Content-Type-Options": "nosniff",
@@ -210,12 +203,6 @@ ApiSession = Annotated[UISession, Depends(require_ui_session)]
 
 router = APIRouter(prefix="/ui", include_in_schema=False)
 
-# The REST API for the pages' scripts: same routes, session cookie and CSRF checks.
-for _module in (scenes, frames, jobs, models, memory, continual, inference, rendering, admin):
-    router.include_router(
-        _module.router, prefix="/api/v1", dependencies=[Depends(require_ui_session)]
-    )
-
 
 # -- signing in ---------------------------------------------------------------------------
 
@@ -341,7 +328,7 @@ def scene_page(
 ) -> Response:
     try:
         check_scene_access(request, db)  # a device key sees only the scenes it created
-        scene = scenes.scene_out(db, get_scene(db, scene_ref))
+        scene = scenes.show_scene(db, scene_ref)
     except APIError as e:
         return _page(request, "error.html", session, e.status, active="scenes", error=e.message)
     all_frames = frames.all_frames(db, scene.id)
@@ -353,8 +340,8 @@ def scene_page(
     if selected is not None and frame is not None:
         page = all_frames.index(selected) // FRAMES_PER_PAGE
     strip = all_frames[page * FRAMES_PER_PAGE : (page + 1) * FRAMES_PER_PAGE]
-    model = current_model(db)
-    nerf = memory.nerf_out(n, scene.name) if (n := active_nerf(db, scene.id)) is not None else None
+    model = models.current_model_out(db)
+    nerf = nerfs.active_nerf_out(db, scene.id, scene.name)
     return _page(
         request,
         "scene.html",
@@ -382,22 +369,22 @@ def jobs_page(request: Request, session: PageSession, db: DbDep) -> Response:
         "jobs.html",
         session,
         active="jobs",
-        jobs=jobs.list_jobs(db, status_=None, kind=None, limit=100),
+        jobs=jobs.list_jobs(db, limit=100),
     )
 
 
 @router.get("/jobs/{job_id}")
 def job_page(
     request: Request,
-    job_id: jobs.JobId,
+    job_id: JobId,
     session: PageSession,
     db: DbDep,
 ) -> Response:
     try:
-        job = jobs.show_job(job_id, db)
+        job = jobs.show_job(db, job_id)
     except APIError as e:
         return _page(request, "error.html", session, e.status, active="jobs", error=e.message)
-    log_lines = jobs.job_log(job_id, db, tail=200).lines
+    log_lines = jobs.job_log(db, job_id, tail=200).lines
     retry_of = next(
         (
             int(line.message.split()[-1])
@@ -414,7 +401,7 @@ def job_page(
         job=job,
         log_lines=log_lines,
         retry_of=retry_of,
-        terminal=sorted(queue.TERMINAL),
+        terminal=sorted(TERMINAL),
     )
 
 
@@ -466,7 +453,7 @@ def try_page(request: Request, session: PageSession, db: DbDep) -> Response:
         "try.html",
         session,
         active="try",
-        model=current_model(db),
+        model=models.current_model_out(db),
         seg_reason=capabilities.missing_reason("seg"),
         nerf_reason=capabilities.missing_reason("nerf"),
         # Renders need operator; a device key's page offers predictions only.
@@ -489,7 +476,7 @@ def work_page(request: Request, session: PageSession, db: DbDep) -> Response:
         active="work",
         scenes=scenes.all_scenes(db),
         kinds=kinds,
-        model=current_model(db),
+        model=models.current_model_out(db),
         adapt_presets=presets,
     )
 
@@ -503,9 +490,9 @@ def audit_page(
     page: Annotated[int, Query(ge=0, le=100_000)] = 0,
 ) -> Response:
     """The audit log, newest first, for admin keys (the route /api/v1/audit answers the same)."""
-    query = admin.audit_query(key_name or None)
-    total = db.scalar(select(func.count()).select_from(query.order_by(None).subquery())) or 0
-    entries = list(db.scalars(query.limit(AUDIT_PER_PAGE).offset(page * AUDIT_PER_PAGE)))
+    entries, total = audit.entries_page(
+        db, key_name or None, offset=page * AUDIT_PER_PAGE, limit=AUDIT_PER_PAGE
+    )
     return _page(
         request,
         "audit.html",
@@ -542,8 +529,8 @@ def frame_panel(
 ) -> Response:
     """One picture of a stored frame: ``prediction`` (current model), ``pseudo`` (the NeRF's
     labels rendered at the frame's pose), ``truth`` (uploaded labels) or ``overlay``."""
-    scene = get_scene(db, scene_ref)
-    src = panels.panel_source(db, scene, panels.frame_of(db, scene, name), panel)
+    frame = frames.get_frame(db, scene_ref, name)
+    src = panels.panel_source(db, frame.scene, frame, panel)
     db.close()
     headers = {"ETag": src.etag, "Cache-Control": "private, no-cache"}
     if _not_modified(request, src.etag):
@@ -602,29 +589,7 @@ async def predict_preview(
     status_code=status.HTTP_202_ACCEPTED,
     dependencies=[Depends(require_ui_session), OperatorScope],
 )
-def retry_job(
-    job_id: jobs.JobId, _: ApiSession, db: DbDep
-) -> JobOut:
+def retry_job(job_id: JobId, _: ApiSession, db: DbDep) -> JobOut:
     """Queue a failed (or cancelled) job again: a new job of the same kind with the same
     resolved parameters; both logs name the other."""
-    job = get_job(db, job_id)
-    if job.status not in (queue.FAILED, queue.CANCELLED):
-        raise conflict(f"job {job_id} is {job.status}; only failed or cancelled jobs are retried")
-    kind = KINDS.get(job.kind)
-    if kind is None:
-        raise APIError(
-            422, "invalid", f"job {job_id} has kind {job.kind!r}, which this build does not know"
-        )
-    reason = kind.missing_reason()
-    if reason is not None:
-        raise not_available(f"job kind {kind.name!r}: {reason}")
-    if kind.name == "pretrain":  # the copy registers the same name and lineage root: still free?
-        name, lineage = (job.params or {}).get("name", ""), job.lineage or ""
-        taken = root_conflict(db, name, lineage, "a pre-training")
-        if taken is not None:
-            raise conflict(taken[1], field=f"params.{taken[0]}")
-    again = queue.enqueue(db, job.kind, dict(job.params or {}), job.lineage)
-    queue.append_log(db, again.id, f"retry of job {job.id}")
-    queue.append_log(db, job.id, f"retried as job {again.id}")
-    db.commit()
-    return JobOut.model_validate(again)
+    return jobs.retry_job(db, job_id)

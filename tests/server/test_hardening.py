@@ -258,7 +258,7 @@ def test_a_render_pose_holding_1e308_is_422_and_the_connection_survives(hostile:
 
 def test_an_unexpected_error_answers_500_and_keeps_the_connection(hostile: Hostile, monkeypatch) -> None:
     """A bug in a route (simulated) is a JSON 500, and the connection stays usable."""
-    from server.routers import scenes
+    from server.services import scenes
 
     def broken(*_args, **_kw):
         raise RuntimeError("simulated bug")

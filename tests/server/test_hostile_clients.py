@@ -518,7 +518,7 @@ def test_an_upload_racing_the_deletion_of_its_scene_is_404(http: httpx.Client, a
     """The scene disappears between validation and the frame's row (another client deleted
     it): the upload answers 404 instead of a 500 from the database."""
     from server.db.models import Scene
-    from server.routers import frames
+    from server.services import frames
 
     scene = new_scene(http)
     if not first:
@@ -545,7 +545,7 @@ def test_a_frame_without_a_name_that_loses_the_race_for_its_number_takes_the_nex
     import dataclasses
 
     from server.db.models import Scene
-    from server.routers import frames
+    from server.services import frames
 
     scene = new_scene(http)
     assert upload_frame(http, scene, "0").status_code == 201
@@ -903,7 +903,7 @@ def test_uploads_are_processed_off_the_event_loop(http: httpx.Client, api_server
 
     from csa_core.data import image_files
     from server import capabilities
-    from server.routers import frames, models
+    from server.services import frames, models
 
     if route in ("model", "predict") and not capabilities.available("seg"):
         pytest.skip("csa_core.seg is not available in this build")

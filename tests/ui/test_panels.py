@@ -12,7 +12,7 @@ import pytest
 
 from csa_core.data.camera import Intrinsics
 from csa_core.data.nyu40 import CLASS_NAMES, class_color
-from server.routers.rendering import MAX_RENDER_PIXELS
+from server.services.nerfs import MAX_RENDER_PIXELS
 from server.ui.panels import LabelMaps, PanelSource, draw_panel, legend
 
 
@@ -79,12 +79,15 @@ def draw_pseudo_panel(tmp_path: Path, camera: dict) -> tuple[list[Intrinsics], n
             asked.append(intrinsics)
             return {"labels": np.full((intrinsics.height, intrinsics.width), 5, np.uint8)}
 
-    src = PanelSource("pseudo", "c", None, None, 1, {"nerf.safetensors": "n"}, np.eye(4).tolist(), camera)
+    files = {"nerf.safetensors": "n"}
+    src = PanelSource("pseudo", "c", None, None, 1, files, np.eye(4).tolist(), camera)
     body = draw_panel(src, Store(), None, Nerfs(), LabelMaps())
     return asked, cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR)
 
 
-def test_a_pseudo_label_panel_of_a_large_frame_renders_within_the_render_limit(tmp_path: Path) -> None:
+def test_a_pseudo_label_panel_of_a_large_frame_renders_within_the_render_limit(
+    tmp_path: Path,
+) -> None:
     """The render route refuses views of more than ``MAX_RENDER_PIXELS`` (a view holds its
     class scores for every pixel); the pseudo-label panel rendered the frame's whole camera, so
     a scene of 4096x4096 frames made every panel of it render 16 times that, gigabytes of

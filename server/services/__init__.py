@@ -1,4 +1,13 @@
-"""The long-lived objects the API and the workers share: settings, database, artifact store."""
+"""The service layer, and the long-lived objects the API and the workers share.
+
+:class:`Services` holds the settings, the database and the artifact store of one process.
+The modules of this package hold the queries and the operations on each resource (scenes,
+frames, model versions, NeRFs, continual metrics, jobs, keys, the audit log, the service's
+status): plain functions of a database session (and the settings or the artifact store where
+they need them) that raise the service's own errors (``server/errors.py``), never HTTP ones.
+The REST routers (``server/routers``) and the dashboard (``server/ui``) call them; neither
+builds a query (docs/architecture.md "The service").
+"""
 
 from __future__ import annotations
 
@@ -24,7 +33,8 @@ class Services:
     sessions: sessionmaker[Session]
     store: ArtifactStore
     api_keys: list[str] = field(default_factory=list)
-    key_principals: dict[str, Principal] = field(default_factory=dict)  # sha256 -> settings key (admin)
+    # sha256 -> settings key (admin)
+    key_principals: dict[str, Principal] = field(default_factory=dict)
 
     def set_settings_keys(self, keys: list[str], generated: bool) -> None:
         """The settings' keys (``server/auth.py``), admin keys that live outside the database."""
@@ -43,4 +53,6 @@ def open_services(settings: Settings) -> Services:
         upgrade_to_head(engine)
     store = ArtifactStore(settings.resolved_artifact_dir)
     settings.resolved_work_dir.mkdir(parents=True, exist_ok=True)
-    return Services(settings=settings, engine=engine, sessions=make_sessionmaker(engine), store=store)
+    return Services(
+        settings=settings, engine=engine, sessions=make_sessionmaker(engine), store=store
+    )
