@@ -60,7 +60,9 @@ the same fit again with another render option (fit seconds and size are the fit'
 ``SamplerConfig.render_hole_estimate``), ``unseen-unknown`` labels surfaces that no training
 camera saw 0, unknown, as the map does (``NerfConfig.render_unseen_unknown``; with a preset
 entry ``fast+observed_resolution=128``, the cells its views' depth measured; its printed
-line also gives ``val_unknown``, the share of held-out pixels left unknown). ``novel-marched``
+line also gives ``val_unknown``, the share of held-out pixels left unknown). ``labels-at-depth`` renders one sample
+per ray, at the measured (or, in holes, estimated) depth: the class the semantic field holds at
+the measured surface point, the NeRF's counterpart of the map's depth read-back. ``novel-marched``
 and ``novel-estimated`` render the held-out views from their poses alone (novel views: colour
 and labels, no depth), every ray marched or rendered around its estimated surface
 (``SamplerConfig.render_novel_estimate``); they give val mIoU, val PSNR and seconds per
@@ -461,6 +463,7 @@ FINE_MARCH = [
 RENDERS = {  # --renders: name -> (row suffix, render options of the fitted model, views' depth)
     "holes-marched": ("holes marched", [("sampler", "render_hole_estimate", False)], True),
     "unseen-unknown": ("unseen=unknown", [(None, "render_unseen_unknown", True)], True),
+    "labels-at-depth": ("labels at the measured depth", [("sampler", "render_band_samples", 1)], True),
     "novel-marched": ("held-out views without depth, marched", [], False),
     "novel-fine-march": (
         "held-out views without depth, marched at the grid's step",
