@@ -42,13 +42,21 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for fam in FAMILIES:
             dest = Path(tmp) / fam
-            sec, scene = timed(lambda fam=fam: generate_scene(fam, 0, args.frames, args.size), args.repeats)
-            wsec, _ = timed(lambda scene=scene, dest=dest: write_scene(scene, dest, overwrite=True), 1)
+            sec, scene = timed(
+                lambda fam=fam: generate_scene(fam, 0, args.frames, args.size), args.repeats
+            )
+            wsec, _ = timed(
+                lambda scene=scene, dest=dest: write_scene(scene, dest, overwrite=True), 1
+            )
             rsec, _ = timed(lambda dest=dest: read_scene(dest), args.repeats)
             rows.append((f"synth {fam}", f"{args.frames} x {w}x{h}", sec, wsec, rsec))
         if args.seven_scenes.is_dir():
-            sec, scene = timed(lambda: load_7scenes(args.seven_scenes, size=args.size), args.repeats)
-            wsec, _ = timed(lambda: write_scene(scene, Path(tmp) / "7s", overwrite=True, color_ext=".jpg"), 1)
+            sec, scene = timed(
+                lambda: load_7scenes(args.seven_scenes, size=args.size), args.repeats
+            )
+            wsec, _ = timed(
+                lambda: write_scene(scene, Path(tmp) / "7s", overwrite=True, color_ext=".jpg"), 1
+            )
             rsec, _ = timed(lambda: read_scene(Path(tmp) / "7s"), args.repeats)
             rows.append(("7-Scenes import", f"{len(scene)} x 640x480 -> {w}x{h}", sec, wsec, rsec))
     print(f"{'what':24s} {'frames':26s} {'make s':>8s} {'write s':>8s} {'read s':>8s}")

@@ -28,10 +28,15 @@ EVAL_OFFSET = 1000  # scene indices of evaluation rooms start here, far from the
 
 
 def _scenes(family: str, seed: int, indices: range, frames: int, size: tuple[int, int]) -> list:
-    return [generate_scene(family, scene_seed(seed, k), frames, size, name=f"{family}_{k}") for k in indices]
+    return [
+        generate_scene(family, scene_seed(seed, k), frames, size, name=f"{family}_{k}")
+        for k in indices
+    ]
 
 
-def _score(model: torch.nn.Module, scenes: list, split: str, size: tuple[int, int]) -> tuple[float, float]:
+def _score(
+    model: torch.nn.Module, scenes: list, split: str, size: tuple[int, int]
+) -> tuple[float, float]:
     matrix = ConfusionMatrix()
     for scene in scenes:
         matrix.merge(evaluate_scene(model, scene, split=split, device="cpu", size=size))
@@ -56,24 +61,41 @@ def main() -> None:
     t0 = time.perf_counter()
     train = _scenes(args.train_family, args.seed, range(args.train_scenes), args.frames, args.size)
     evals = {
-        fam: _scenes(fam, args.seed, range(EVAL_OFFSET, EVAL_OFFSET + args.eval_scenes), args.frames, args.size)
+        fam: _scenes(
+            fam,
+            args.seed,
+            range(EVAL_OFFSET, EVAL_OFFSET + args.eval_scenes),
+            args.frames,
+            args.size,
+        )
         for fam in args.eval_families.split(",")
     }
     t_data = time.perf_counter() - t0
 
     config = PretrainConfig(
         size=args.size,
-        train=TrainConfig(epochs=args.epochs, val_every=args.epochs, seed=args.seed, device="cpu", progress=False),
+        train=TrainConfig(
+            epochs=args.epochs, val_every=args.epochs, seed=args.seed, device="cpu", progress=False
+        ),
     )
     t0 = time.perf_counter()
     model, _ = pretrain(train, config, out=args.out)
     t_train = time.perf_counter() - t0
 
-    rows = [(args.train_family, f"{args.train_family} (training rooms, val views)", *_score(model, train, "val", args.size))]
+    rows = [
+        (
+            args.train_family,
+            f"{args.train_family} (training rooms, val views)",
+            *_score(model, train, "val", args.size),
+        )
+    ]
     for fam, scenes in evals.items():
-        rows.append((args.train_family, f"{fam} (new rooms)", *_score(model, scenes, "all", args.size)))
+        rows.append(
+            (args.train_family, f"{fam} (new rooms)", *_score(model, scenes, "all", args.size))
+        )
     print(
-        f"\n{args.train_scenes} x {args.frames} frames of {args.train_family} at {args.size[0]}x{args.size[1]}, "
+        f"\n{args.train_scenes} x {args.frames} frames of {args.train_family} "
+        f"at {args.size[0]}x{args.size[1]}, "
         f"{args.epochs} epochs; {args.eval_scenes} new rooms per family "
         f"(data {t_data:.0f} s, training {t_train:.0f} s)\n"
     )

@@ -2,9 +2,9 @@
 
 Fits one NeRF preset to a synthetic room's per-frame corrupted labels (as the fusion
 benchmark's ``--noise`` does), renders the training views' labels with their depth and the
-novel views between the training poses (colour and labels, no depth), and prints, for each of the four parts (the fit's
-steps, the semantic steps after them, label renders with depth, novel views), the seconds
-spent in each phase, exclusive of the phases nested in it::
+novel views between the training poses (colour and labels, no depth), and prints, for each of the
+four parts (the fit's steps, the semantic steps after them, label renders with depth, novel views),
+the seconds spent in each phase, exclusive of the phases nested in it::
 
     python benchmarks/fit_profile.py synth:office:0 --frames 250 --size 160x120 --threads 2
     python benchmarks/fit_profile.py synth:apartment:0 --variant hard --ops
@@ -102,7 +102,9 @@ def install(clock: PhaseClock) -> None:
             setattr(owner, name, clock.timed(phase, fn))
     for cls in [RaySampler, *RaySampler.__subclasses__()]:
         if "update_every_n_steps" in cls.__dict__:
-            cls.update_every_n_steps = clock.timed("occupancy grid update", cls.__dict__["update_every_n_steps"])
+            cls.update_every_n_steps = clock.timed(
+                "occupancy grid update", cls.__dict__["update_every_n_steps"]
+            )
 
 
 def profile_ops(steps: int, rows: int) -> None:
@@ -127,22 +129,30 @@ def profile_ops(steps: int, rows: int) -> None:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene", nargs="?", default="synth:office:0", help="synth:FAMILY:SEED or folder:PATH")
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "scene", nargs="?", default="synth:office:0", help="synth:FAMILY:SEED or folder:PATH"
+    )
     p.add_argument("--variant", choices=("clean", "hard"), default="clean")
     p.add_argument("--frames", type=int, default=250)
     p.add_argument("--size", default="160x120")
     p.add_argument("--preset", default="fast")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--ops", action="store_true", help="also profile 20 fit steps with torch.profiler")
+    p.add_argument(
+        "--ops", action="store_true", help="also profile 20 fit steps with torch.profiler"
+    )
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     scene, labelled = load_scene(args.scene, parse_size(args.size), args.frames)
     if not labelled or any(NYU40_FOLDER not in f.labels for f in scene.frames):
         raise SystemExit(f"{args.scene}: needs ground truth ({NYU40_FOLDER}) to corrupt")
     if args.variant == "hard":
-        scene.frames = degrade_scene(scene, args.seed, source=NYU40_FOLDER, target=NOISY_FOLDER).frames
+        scene.frames = degrade_scene(
+            scene, args.seed, source=NYU40_FOLDER, target=NOISY_FOLDER
+        ).frames
         for f in scene.frames:
             f.labels[LABELS] = f.labels[NOISY_FOLDER]
     else:
@@ -157,7 +167,9 @@ def main() -> None:
     # The fit's two loops as their own parts (the semantic steps run inside the fit).
     real_step, real_semantic = NerfTrainer.step, NerfTrainer.semantic_steps
     NerfTrainer.step = lambda self: clock.run("fit steps", real_step, self)
-    NerfTrainer.semantic_steps = lambda self, *a, **k: clock.run("semantic steps", real_semantic, self, *a, **k)
+    NerfTrainer.semantic_steps = lambda self, *a, **k: clock.run(
+        "semantic steps", real_semantic, self, *a, **k
+    )
 
     start = time.perf_counter()
     nerf, stats = fit_semantic_nerf(scene, LABELS, args.preset, device="cpu", progress=False)
@@ -169,10 +181,16 @@ def main() -> None:
     views = clock.run("novel views", render_views, nerf, None, "novel", semantics=True, color=True)
     novel = time.perf_counter() - start
     n_train = scene.num_train
-    print(f"\n{args.scene} ({args.variant}), {len(scene)} frames at {args.size}, preset {args.preset}, "
-          f"{args.threads} threads, torch {torch.__version__}, C kernel: {hash_kernel.available()}")
-    print(f"fit {fit_wall:.1f} s ({stats.steps} steps), labels with depth {with_depth / n_train:.3f} s per view "
-          f"({n_train}), novel views: {novel / len(views):.3f} s per view ({len(views)}, colour + labels)\n")
+    print(
+        f"\n{args.scene} ({args.variant}), {len(scene)} frames at {args.size}, "
+        f"preset {args.preset}, "
+        f"{args.threads} threads, torch {torch.__version__}, C kernel: {hash_kernel.available()}"
+    )
+    print(
+        f"fit {fit_wall:.1f} s ({stats.steps} steps), "
+        f"labels with depth {with_depth / n_train:.3f} s per view ({n_train}), "
+        f"novel views: {novel / len(views):.3f} s per view ({len(views)}, colour + labels)\n"
+    )
     print("| part | phase | seconds | share of the part |")
     print("|---|---|---|---|")
     for part, phases in clock.seconds.items():

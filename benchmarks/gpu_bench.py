@@ -114,14 +114,14 @@ class Bench:
             t, self._scene = timed(
                 torch.device("cpu"), lambda: generate_scene(a.family, a.seed, a.frames, a.size)
             )
-            print(f"room {a.family}:{a.seed}, {a.frames} views at {a.size[0]}x{a.size[1]}: {t:.1f} s")
+            print(
+                f"room {a.family}:{a.seed}, {a.frames} views at {a.size[0]}x{a.size[1]}: {t:.1f} s"
+            )
         return self._scene
 
     def row(self, stage: str, what: str, value: float, unit: str, note: str = "") -> None:
         stage += self.label
-        self.rows.append(
-            {"stage": stage, "what": what, "value": value, "unit": unit, "note": note}
-        )
+        self.rows.append({"stage": stage, "what": what, "value": value, "unit": unit, "note": note})
         print(f"  {stage:9s} {what:46s} {value:10.4g} {unit:10s} {note}", flush=True)
 
     def fit(self, name: str, steps: int | None) -> tuple[SemanticNerf, Any]:
@@ -144,7 +144,10 @@ class Bench:
         self.row("reference", "PSNR of the last step's rays", stats.final_psnr, "dB")
         self.row("reference", "samples per second", stats.samples_per_second, "samples/s")
         self.row(
-            "reference", f"paper budget ({PAPER_STEPS} steps)", step_s * PAPER_STEPS, "s",
+            "reference",
+            f"paper budget ({PAPER_STEPS} steps)",
+            step_s * PAPER_STEPS,
+            "s",
             "extrapolated",
         )
         self.row("reference", "peak memory", peak_mb(dev), "MB")
@@ -198,7 +201,9 @@ class Bench:
         scene = self.scene
         frames = scene.train_frames
         views = frames[: a.render_views]
-        kwargs = {"device": dev} if "device" in vm.VoxelSemanticMap.__init__.__code__.co_varnames else {}
+        kwargs = (
+            {"device": dev} if "device" in vm.VoxelSemanticMap.__init__.__code__.co_varnames else {}
+        )
         where = "on the device" if kwargs else "numpy, CPU"
         reset_peak(dev)
 
@@ -221,8 +226,17 @@ class Bench:
     def demo(self) -> None:
         a = self.args
         with tempfile.TemporaryDirectory() as tmp:
-            cmd = [sys.executable, "-m", "csa_core.cli.main", "demo", "--out", f"{tmp}/demo",
-                   "--device", str(self.device), *a.demo_args]
+            cmd = [
+                sys.executable,
+                "-m",
+                "csa_core.cli.main",
+                "demo",
+                "--out",
+                f"{tmp}/demo",
+                "--device",
+                str(self.device),
+                *a.demo_args,
+            ]
             env = dict(os.environ, PYTHONPATH=str(REPO))
             t0 = time.perf_counter()
             done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
@@ -230,7 +244,9 @@ class Bench:
             tail = (done.stdout + done.stderr).strip().splitlines()[-12:]
             print("\n".join("    | " + line for line in tail))
             if done.returncode != 0:
-                self.row("demo", "csa demo end to end", float("nan"), "s", f"FAILED rc={done.returncode}")
+                self.row(
+                    "demo", "csa demo end to end", float("nan"), "s", f"FAILED rc={done.returncode}"
+                )
                 return
             self.row("demo", "csa demo end to end", seconds, "s", " ".join(a.demo_args))
 
@@ -257,16 +273,22 @@ class Bench:
                 trainer.step()
             sync(dev)
         events = prof.key_averages()
-        launches = sum(e.count for e in events if e.key.startswith(("cudaLaunchKernel", "cuLaunch")))
-        print(f"\nprofile: {a.profile_steps} reference steps; kernel launches per step: "
-              f"{launches / a.profile_steps:.0f}")
+        launches = sum(
+            e.count for e in events if e.key.startswith(("cudaLaunchKernel", "cuLaunch"))
+        )
+        print(
+            f"\nprofile: {a.profile_steps} reference steps; kernel launches per step: "
+            f"{launches / a.profile_steps:.0f}"
+        )
         print(events.table(sort_by=key, row_limit=a.profile_rows, max_name_column_width=60))
         f = self.scene.train_frames[0]
         with profile(activities=acts) as prof:
             render_frames(nerf, [(f.name, f.pose)])
             sync(dev)
         events = prof.key_averages()
-        launches = sum(e.count for e in events if e.key.startswith(("cudaLaunchKernel", "cuLaunch")))
+        launches = sum(
+            e.count for e in events if e.key.startswith(("cudaLaunchKernel", "cuLaunch"))
+        )
         print(f"\nprofile: one reference render, colour + labels; kernel launches: {launches}")
         print(events.table(sort_by=key, row_limit=a.profile_rows, max_name_column_width=60))
 
@@ -296,7 +318,9 @@ def encoding_path(device: torch.device) -> str:
 def table(rows: list[dict[str, Any]]) -> str:
     lines = ["| stage | what | value | unit | note |", "|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['stage']} | {r['what']} | {r['value']:.4g} | {r['unit']} | {r['note']} |")
+        lines.append(
+            f"| {r['stage']} | {r['what']} | {r['value']:.4g} | {r['unit']} | {r['note']} |"
+        )
     return "\n".join(lines)
 
 
@@ -307,10 +331,16 @@ def device_name(device: torch.device) -> str:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--device", default="auto", help="torch device (default: CUDA when present)")
-    p.add_argument("--stages", default=",".join(STAGES), help=f"comma-separated, of {', '.join(STAGES)}")
-    p.add_argument("--smoke", action="store_true", help="tiny sizes on the CPU: checks every stage runs")
+    p.add_argument(
+        "--stages", default=",".join(STAGES), help=f"comma-separated, of {', '.join(STAGES)}"
+    )
+    p.add_argument(
+        "--smoke", action="store_true", help="tiny sizes on the CPU: checks every stage runs"
+    )
     p.add_argument("--family", default="office")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--frames", type=int, default=250, help="views of the room")
@@ -337,9 +367,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.frames, args.size = 6, (32, 24)
         args.reference_steps, args.fast_steps, args.warmup_steps = 2, 3, 1
         args.render_views, args.profile_steps = 2, 1
-        args.set += ["optim.rays_per_step=256", "optim.semantic_steps=2",
-                     "optim.semantic_rays_per_step=256", "sampler.uniform_samples=16",
-                     "sampler.importance_samples=16"]
+        args.set += [
+            "optim.rays_per_step=256",
+            "optim.semantic_steps=2",
+            "optim.semantic_rays_per_step=256",
+            "sampler.uniform_samples=16",
+            "sampler.importance_samples=16",
+        ]
         args.demo_args = (
             "--size 48x36 --frames 10 --pretrain-scenes 1 --pretrain-frames 10 "
             "--pretrain-epochs 1 --target-scenes 1 --preset tiny --seven-scenes absent"
@@ -357,8 +391,11 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     if args.threads:
         torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
-    print(f"device: {device_name(device)}; torch {torch.__version__}; "
-          f"CPU threads {torch.get_num_threads()}", flush=True)
+    print(
+        f"device: {device_name(device)}; torch {torch.__version__}; "
+        f"CPU threads {torch.get_num_threads()}",
+        flush=True,
+    )
     bench = Bench(args, device)
     run_stages(bench, args.stages)
     print(f"hash encoding on {device.type}: {encoding_path(device)}")
@@ -371,8 +408,10 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         bench.rows += other.rows
     if args.profile:
         bench.profile()
-    print(f"\n{device_name(device)}, {time.strftime('%Y-%m-%d')}, "
-          f"room {args.family}:{args.seed} {args.frames} views at {args.size[0]}x{args.size[1]}")
+    print(
+        f"\n{device_name(device)}, {time.strftime('%Y-%m-%d')}, "
+        f"room {args.family}:{args.seed} {args.frames} views at {args.size[0]}x{args.size[1]}"
+    )
     print(table(bench.rows))
     if args.json is not None:
         args.json.write_text(json.dumps(bench.rows, indent=1))

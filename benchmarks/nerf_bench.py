@@ -3,12 +3,13 @@ label mIoU and checkpoint size, per preset. Prints a markdown table (not a test)
 
 Examples (run from the repository root):
 
-    python benchmarks/nerf_bench.py --scene 7scenes:../shared/data/7scenes-kitchen-100 --size 160x120
+    python benchmarks/nerf_bench.py --scene 7scenes:../shared/data/7scenes-kitchen-100 \
+        --size 160x120
     python benchmarks/nerf_bench.py --scene synth:apartment:3 --frames 60 --size 80x60 --noise
     python benchmarks/nerf_bench.py --scene synth:apartment:3 --presets fast,reference --steps 400
 
-    python benchmarks/nerf_bench.py --scene 7scenes:../shared/data/7scenes-kitchen-100 --size 160x120 \
-        --color-camera kinect --appearance affine --holdout every:5
+    python benchmarks/nerf_bench.py --scene 7scenes:../shared/data/7scenes-kitchen-100 \
+        --size 160x120 --color-camera kinect --appearance affine --holdout every:5
 
 Held-out (``--holdout``): ``tail`` = the scene's validation frames (last 20% of the trajectory,
 the project's protocol); ``every:N`` = every N-th frame (interleaved, the usual NeRF protocol),

@@ -90,7 +90,8 @@ def main() -> None:
         for size in SIZES:
             train_ips, infer_ms = bench(arch, size, args.batch, args.repeats)
             print(
-                f"| {arch} | {params:.1f} | {size[0]}x{size[1]} | {train_ips:.1f} | {infer_ms:.1f} |",
+                f"| {arch} | {params:.1f} | {size[0]}x{size[1]} "
+                f"| {train_ips:.1f} | {infer_ms:.1f} |",
                 flush=True,
             )
 

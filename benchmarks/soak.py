@@ -64,7 +64,8 @@ FRAME_SIZE = (160, 120)
 TINY_NERF = {"steps": 60, "rays_per_step": 256, "occupancy_resolution": 32, "log2_table_size": 12}
 SMOKE_NERF = {"steps": 20, "rays_per_step": 128, "occupancy_resolution": 16, "log2_table_size": 10}
 NO_ANSWER = 0  # the status recorded for a request that got no answer (timeout, reset)
-SHED = "render_busy"  # the code of a render refused while the server's renders are busy (server/nerf_cache.py)
+# the code of a render refused while the server's renders are busy (server/nerf_cache.py)
+SHED = "render_busy"
 
 
 @dataclass
@@ -694,7 +695,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.frames < 2:
         p.error(f"--frames: {args.frames} is too few (at least 2)")
     return args
-
 
 
 def run_in_own_loop(coroutine) -> None:

@@ -11,7 +11,8 @@ from csa_core.errors import CSAInputError
 
 
 def resolve_device(name: str | torch.device | None = None) -> torch.device:
-    """``None`` or ``"auto"``: ``cuda`` if available, else ``cpu``; otherwise the named device, checked."""
+    """``None`` or ``"auto"``: ``cuda`` if available, else ``cpu``; otherwise the named device,
+    checked."""
     if isinstance(name, torch.device):
         return name
     if name is None or name == "auto":
@@ -21,7 +22,9 @@ def resolve_device(name: str | torch.device | None = None) -> torch.device:
     except (RuntimeError, TypeError) as e:
         raise CSAInputError("--device", f"not a torch device: {name!r} ({e})") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise CSAInputError("--device", "CUDA was requested but this machine has no usable CUDA GPU")
+        raise CSAInputError(
+            "--device", "CUDA was requested but this machine has no usable CUDA GPU"
+        )
     if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
         raise CSAInputError(
             "--device", f"{name}: this machine has {torch.cuda.device_count()} CUDA device(s)"

@@ -89,8 +89,7 @@ def _apply_one(config: Any, item: str, flag: str) -> None:
             valid = [*names, *getattr(obj, "OVERRIDE_KEYS", ())]
             raise CSAInputError(
                 where,
-                f"unknown key {key!r}: {level} has no field {name!r} "
-                f"(valid: {', '.join(valid)})",
+                f"unknown key {key!r}: {level} has no field {name!r} (valid: {', '.join(valid)})",
             )
         value = getattr(obj, name)
         if depth == len(parts) - 1:
@@ -142,7 +141,9 @@ def _set(obj: Any, name: str, value: Any, key: str, where: str) -> None:
     try:
         setattr(obj, name, value)
     except dataclasses.FrozenInstanceError:
-        raise CSAInputError(where, f"{key!r} belongs to a frozen config and cannot be set") from None
+        raise CSAInputError(
+            where, f"{key!r} belongs to a frozen config and cannot be set"
+        ) from None
 
 
 def _is_optional_section(tp: Any) -> bool:
@@ -155,7 +156,9 @@ def _field_types(cls: type, where: str) -> dict[str, Any]:
     try:
         return typing.get_type_hints(cls)
     except (NameError, TypeError) as err:  # annotations that do not resolve at run time
-        raise CSAInputError(where, f"cannot read the field types of {cls.__name__}: {err}") from None
+        raise CSAInputError(
+            where, f"cannot read the field types of {cls.__name__}: {err}"
+        ) from None
 
 
 def _revalidate(obj: Any) -> None:

@@ -27,7 +27,13 @@ from server.errors import storage_full
 
 _CHUNK = 1 << 20
 MAX_TAR_HEADER_BYTES = 64 * 1024  # a pax or GNU long-name header: a path of a few kilobytes at most
-_EXTENDED_HEADERS = (tarfile.XHDTYPE, tarfile.XGLTYPE, tarfile.SOLARIS_XHDTYPE, tarfile.GNUTYPE_LONGNAME, tarfile.GNUTYPE_LONGLINK)
+_EXTENDED_HEADERS = (
+    tarfile.XHDTYPE,
+    tarfile.XGLTYPE,
+    tarfile.SOLARIS_XHDTYPE,
+    tarfile.GNUTYPE_LONGNAME,
+    tarfile.GNUTYPE_LONGLINK,
+)
 
 
 class UnsafeArchive(ValueError):
@@ -76,7 +82,9 @@ class _Budget:
         """Record an entry's path; refuse a duplicate file or a file/folder clash."""
         for parent in rel.parents:
             if parent in self.files:
-                raise UnsafeArchive(f"{name!r}: {str(parent)!r} is a file in this archive, not a folder")
+                raise UnsafeArchive(
+                    f"{name!r}: {str(parent)!r} is a file in this archive, not a folder"
+                )
         if rel in self.files:
             raise UnsafeArchive(f"{name!r}: the archive holds this path twice")
         if is_dir:
@@ -94,7 +102,9 @@ class _Budget:
                 written += len(chunk)
                 self.total += len(chunk)
                 if written > self.limits.max_member_bytes:
-                    raise UnsafeArchive(f"{name!r}: larger than {self.limits.max_member_bytes} bytes")
+                    raise UnsafeArchive(
+                        f"{name!r}: larger than {self.limits.max_member_bytes} bytes"
+                    )
                 if self.total > self.limits.max_total_bytes:
                     raise UnsafeArchive(f"unpacks to more than {self.limits.max_total_bytes} bytes")
                 out.write(chunk)
@@ -124,7 +134,10 @@ class _BoundedTarInfo(tarfile.TarInfo):
         if info.type == tarfile.GNUTYPE_SPARSE:
             raise UnsafeArchive(f"{info.name!r}: sparse files are not allowed")
         if info.type in _EXTENDED_HEADERS and info.size > MAX_TAR_HEADER_BYTES:
-            raise UnsafeArchive(f"{info.name!r}: extended header of {info.size} bytes (more than {MAX_TAR_HEADER_BYTES})")
+            raise UnsafeArchive(
+                f"{info.name!r}: extended header of {info.size} bytes (more than "
+                f"{MAX_TAR_HEADER_BYTES})"
+            )
         return info
 
     def _proc_gnusparse_10(self, member, pax_headers, archive):  # tarfile's hook for pax sparse 1.0
@@ -150,7 +163,9 @@ def _extract_tar(path: Path, root: Path, limits: ArchiveLimits) -> None:
                     raise UnsafeArchive(f"{m.name!r}: sparse files are not allowed")
                 if rel is None:
                     if m.isfile():  # its data would be skipped unread, uncounted
-                        raise UnsafeArchive(f"{m.name!r}: a file cannot be the archive folder itself")
+                        raise UnsafeArchive(
+                            f"{m.name!r}: a file cannot be the archive folder itself"
+                        )
                     continue
                 budget.claim(m.name, rel, m.isdir())
                 dest = _target(root, rel)
@@ -167,7 +182,14 @@ def _extract_tar(path: Path, root: Path, limits: ArchiveLimits) -> None:
                     budget.copy(src, dest, m.name)
     except UnsafeArchive:
         raise
-    except (tarfile.TarError, EOFError, RecursionError, ValueError, zlib.error, lzma.LZMAError) as e:  # RecursionError: a chain of extended headers
+    except (
+        tarfile.TarError,
+        EOFError,
+        RecursionError,
+        ValueError,
+        zlib.error,
+        lzma.LZMAError,
+    ) as e:  # RecursionError: a chain of extended headers
         raise UnsafeArchive(f"not a readable tar archive ({e})") from None
     except OSError as e:  # the message, never the server's path
         if storage_full(e):  # the server's disk, not the archive: answered 507
@@ -185,15 +207,26 @@ def _extract_zip(path: Path, root: Path, limits: ArchiveLimits) -> None:
             declared = 0
             for info in infos:
                 _safe_relpath(info.filename)
-                file_type = stat.S_IFMT(info.external_attr >> 16)  # 0: made on a system without types
+                file_type = stat.S_IFMT(
+                    info.external_attr >> 16
+                )  # 0: made on a system without types
                 if file_type == stat.S_IFLNK:
                     raise UnsafeArchive(f"{info.filename!r}: links are not allowed")
                 if file_type not in (0, stat.S_IFREG, stat.S_IFDIR):
-                    raise UnsafeArchive(f"{info.filename!r}: only regular files and folders are allowed")
+                    raise UnsafeArchive(
+                        f"{info.filename!r}: only regular files and folders are allowed"
+                    )
                 if info.file_size > limits.max_member_bytes:
-                    raise UnsafeArchive(f"{info.filename!r}: larger than {limits.max_member_bytes} bytes")
-                if info.file_size > 1024 and info.file_size > limits.max_ratio * max(info.compress_size, 1):
-                    raise UnsafeArchive(f"{info.filename!r}: compression ratio above {limits.max_ratio:g} (archive bomb?)")
+                    raise UnsafeArchive(
+                        f"{info.filename!r}: larger than {limits.max_member_bytes} bytes"
+                    )
+                if info.file_size > 1024 and info.file_size > limits.max_ratio * max(
+                    info.compress_size, 1
+                ):
+                    raise UnsafeArchive(
+                        f"{info.filename!r}: compression ratio above {limits.max_ratio:g} (archive "
+                        "bomb?)"
+                    )
                 declared += info.file_size
             if declared > limits.max_total_bytes:
                 raise UnsafeArchive(f"unpacks to more than {limits.max_total_bytes} bytes")
@@ -212,7 +245,16 @@ def _extract_zip(path: Path, root: Path, limits: ArchiveLimits) -> None:
                     budget.copy(src, dest, info.filename)
     except UnsafeArchive:
         raise
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError, RuntimeError, ValueError, zlib.error, lzma.LZMAError) as e:  # RuntimeError: encrypted
+    except (
+        zipfile.BadZipFile,
+        zipfile.LargeZipFile,
+        EOFError,
+        NotImplementedError,
+        RuntimeError,
+        ValueError,
+        zlib.error,
+        lzma.LZMAError,
+    ) as e:  # RuntimeError: encrypted
         raise UnsafeArchive(f"not a readable zip archive ({e})") from None
     except OSError as e:  # the message, never the server's path
         if storage_full(e):  # the server's disk, not the archive: answered 507

@@ -89,7 +89,9 @@ class ArtifactStore:
         dest.parent.mkdir(parents=True, exist_ok=True)
         os.replace(tmp, dest)
 
-    def put_bytes(self, session: Session, data: bytes, kind: str, media_type: str = "application/octet-stream") -> StoredFile:
+    def put_bytes(
+        self, session: Session, data: bytes, kind: str, media_type: str = "application/octet-stream"
+    ) -> StoredFile:
         """Store ``data`` (atomically, once) and record it in the session's transaction."""
         sha = hashlib.sha256(data).hexdigest()
         fd, name = tempfile.mkstemp(dir=self.root / "tmp", suffix=".part")
@@ -106,7 +108,9 @@ class ArtifactStore:
             tmp.unlink(missing_ok=True)
         return self._record(session, sha, len(data), kind, media_type)
 
-    def put_file(self, session: Session, path: Path, kind: str, media_type: str = "application/octet-stream") -> StoredFile:
+    def put_file(
+        self, session: Session, path: Path, kind: str, media_type: str = "application/octet-stream"
+    ) -> StoredFile:
         """Copy a file into the store (atomically, once) and record it."""
         h = hashlib.sha256()
         size = 0
@@ -129,7 +133,9 @@ class ArtifactStore:
         faults.point("artifact.file_stored")
         return self._record(session, sha, size, kind, media_type)
 
-    def _record(self, session: Session, sha: str, size: int, kind: str, media_type: str) -> StoredFile:
+    def _record(
+        self, session: Session, sha: str, size: int, kind: str, media_type: str
+    ) -> StoredFile:
         if session.get(Artifact, sha) is None:
             session.add(Artifact(sha256=sha, size_bytes=size, kind=kind, media_type=media_type))
             session.flush()
@@ -180,7 +186,9 @@ class ArtifactStore:
         """Delete the rows of artifacts that no frame, model version or NeRF checkpoint refers
         to; returns their checksums for :meth:`remove_unrecorded` once the transaction commits."""
         used: set[str] = set()
-        for c, d, lab in session.execute(select(Frame.color_sha256, Frame.depth_sha256, Frame.labels_sha256)):
+        for c, d, lab in session.execute(
+            select(Frame.color_sha256, Frame.depth_sha256, Frame.labels_sha256)
+        ):
             used.update(s for s in (c, d, lab) if s)
         for (files,) in session.execute(select(ModelVersion.files)):
             used.update(files.values())
@@ -194,7 +202,9 @@ class ArtifactStore:
         session.flush()
         return removed
 
-    def sweep_unrecorded(self, session: Session, older_than_s: float, dry_run: bool = False) -> list[str]:
+    def sweep_unrecorded(
+        self, session: Session, older_than_s: float, dry_run: bool = False
+    ) -> list[str]:
         """Delete blob files that no artifact row records and ``tmp/`` files, when last written
         more than ``older_than_s`` seconds ago (a younger one may belong to a transaction still
         open); returns the deleted files' names (with ``dry_run``: those it would delete, and
@@ -203,7 +213,13 @@ class ArtifactStore:
         cutoff = time.time() - older_than_s
         recorded = set(session.scalars(select(Artifact.sha256)))
         removed: list[str] = []
-        candidates = [p for d in (self.root / "blobs").iterdir() if d.is_dir() for p in d.iterdir() if p.name not in recorded]
+        candidates = [
+            p
+            for d in (self.root / "blobs").iterdir()
+            if d.is_dir()
+            for p in d.iterdir()
+            if p.name not in recorded
+        ]
         candidates += list((self.root / "tmp").iterdir())
         for path in candidates:
             try:

@@ -1,13 +1,14 @@
-"""The audit log: one row per write request of an authenticated key (docs/operations.md "Audit log").
+"""The audit log: one row per write request of an authenticated key
+(docs/operations.md "Audit log").
 
 :class:`AuditMiddleware` sees every request; for a write (POST, PUT, PATCH, DELETE) whose key
 the authentication dependency identified (``request.state.principal``: an API key or a
 dashboard session), it records after the answer who (key name and scope), what (method, route
 template, path, the path's ids and, for a 201, the id of what was made), when, and the status
 code, refusals (403, 404, 409, 422) included. The entry is committed before the last bytes of
-the answer are sent, so a client that reads the log after an answer finds it there. Requests without a valid key are not recorded
-(they would let anyone fill the table; they are answered 401 and logged). POST routes that
-change nothing (predictions, renders) are not writes.
+the answer are sent, so a client that reads the log after an answer finds it there. Requests without
+a valid key are not recorded (they would let anyone fill the table; they are answered 401 and
+logged). POST routes that change nothing (predictions, renders) are not writes.
 """
 
 from __future__ import annotations
@@ -27,13 +28,17 @@ log = logging.getLogger(__name__)
 
 WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 # POST routes that answer a computation and store nothing; under /ui/api/v1 too.
-READ_ONLY_ROUTES = frozenset({"/api/v1/predict", "/api/v1/scenes/{scene_ref}/render", "/ui/api/predict-preview"})
+READ_ONLY_ROUTES = frozenset(
+    {"/api/v1/predict", "/api/v1/scenes/{scene_ref}/render", "/ui/api/predict-preview"}
+)
 _CREATED_BODY_LIMIT = 64 * 1024  # a 201 answer's body is read for its "id" up to this size
 _MAX_PATH = 1024
 
 
 def _is_read_only(template: str) -> bool:
-    return template in READ_ONLY_ROUTES or (template.startswith("/ui/api/v1/") and template[3:] in READ_ONLY_ROUTES)
+    return template in READ_ONLY_ROUTES or (
+        template.startswith("/ui/api/v1/") and template[3:] in READ_ONLY_ROUTES
+    )
 
 
 def _route_template(scope: Scope) -> str | None:
@@ -56,9 +61,27 @@ def _created_id(body: bytes) -> Any:
     return value.get("id") if isinstance(value, dict) else None
 
 
-def record(sessions, principal: Principal, method: str, route: str, path: str, ids: dict[str, Any], status: int) -> None:
+def record(
+    sessions,
+    principal: Principal,
+    method: str,
+    route: str,
+    path: str,
+    ids: dict[str, Any],
+    status: int,
+) -> None:
     with session_scope(sessions) as db:
-        db.add(AuditEntry(key_name=principal.name, scope=principal.scope, method=method, route=route[:255], path=path[:_MAX_PATH], ids=ids, status=status))
+        db.add(
+            AuditEntry(
+                key_name=principal.name,
+                scope=principal.scope,
+                method=method,
+                route=route[:255],
+                path=path[:_MAX_PATH],
+                ids=ids,
+                status=status,
+            )
+        )
 
 
 class AuditMiddleware:
@@ -86,9 +109,12 @@ class AuditMiddleware:
                 if status == 201 and json_answer and len(body) <= _CREATED_BODY_LIMIT:
                     body.extend(message.get("body", b""))
                 if not message.get("more_body", False) and not recorded:
-                    # Before the answer's end reaches the client: whoever reads the log next sees it.
+                    # Before the answer's end reaches the client: whoever reads the log
+                    # next sees it.
                     recorded = True
-                    await self._record(scope, status, bytes(body) if len(body) <= _CREATED_BODY_LIMIT else b"")
+                    await self._record(
+                        scope, status, bytes(body) if len(body) <= _CREATED_BODY_LIMIT else b""
+                    )
             await send(message)
 
         try:
@@ -107,6 +133,13 @@ class AuditMiddleware:
             ids["created_id"] = created
         sessions = scope["app"].state.services.sessions
         try:
-            await run_in_threadpool(record, sessions, principal, scope["method"], template, scope["path"], ids, status)
+            await run_in_threadpool(
+                record, sessions, principal, scope["method"], template, scope["path"], ids, status
+            )
         except Exception:  # the answer is sent; a lost entry is logged, never a second answer
-            log.exception("could not record the audit entry of %s %s by %s", scope["method"], scope["path"], principal.name)
+            log.exception(
+                "could not record the audit entry of %s %s by %s",
+                scope["method"],
+                scope["path"],
+                principal.name,
+            )

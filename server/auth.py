@@ -61,7 +61,9 @@ def authenticate(request: Request, given: str) -> Principal:
     Looked up on every request, so revocation and expiry take effect at the next one."""
     services = request.app.state.services
     if len(given) > MAX_KEY_CHARS:
-        raise APIError(401, "unauthorized", "invalid API key", headers={"WWW-Authenticate": "Bearer"})
+        raise APIError(
+            401, "unauthorized", "invalid API key", headers={"WWW-Authenticate": "Bearer"}
+        )
     with services.sessions() as db:
         return principal_for_hash(db, hash_secret(given), services.key_principals)
 
@@ -75,7 +77,12 @@ def require_api_key(
     kept in ``request.state.principal`` for the scope checks and the audit log."""
     given = _given_key(header_key, bearer)
     if not given:
-        raise APIError(401, "unauthorized", "missing API key (send X-API-Key or Authorization: Bearer)", headers={"WWW-Authenticate": "Bearer"})
+        raise APIError(
+            401,
+            "unauthorized",
+            "missing API key (send X-API-Key or Authorization: Bearer)",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
     principal = authenticate(request, given)
     request.state.principal = principal
     return principal
@@ -93,7 +100,12 @@ def _scope_dependency(scope: Scope):
     def require_scope(request: Request) -> Principal:
         principal = current_principal(request)
         if not principal.allows(scope):
-            raise APIError(403, "forbidden", f"this route needs scope {scope!r}; key {principal.name!r} has scope {principal.scope!r}")
+            raise APIError(
+                403,
+                "forbidden",
+                f"this route needs scope {scope!r}; key {principal.name!r} has scope "
+                f"{principal.scope!r}",
+            )
         return principal
 
     require_scope.__name__ = f"require_{scope}_scope"
@@ -119,7 +131,10 @@ def check_scene_access(request: Request, db: DbDep) -> None:
     scene = get_scene(db, ref)
     if scene.owner_key_id is None or scene.owner_key_id != principal.key_id:
         raise APIError(
-            403, "forbidden", f"scene {scene.name!r} was not created by key {principal.name!r}; other keys' scenes need scope {OPERATOR!r}"
+            403,
+            "forbidden",
+            f"scene {scene.name!r} was not created by key {principal.name!r}; other keys' scenes "
+            f"need scope {OPERATOR!r}",
         )
 
 

@@ -63,7 +63,13 @@ def _pg_conninfo(url: str) -> tuple[str, dict[str, str]]:
     env = {**os.environ}
     if parsed.password is not None:
         env["PGPASSWORD"] = str(parsed.password)
-    plain = URL.create("postgresql", username=parsed.username, host=parsed.host, port=parsed.port, database=parsed.database)
+    plain = URL.create(
+        "postgresql",
+        username=parsed.username,
+        host=parsed.host,
+        port=parsed.port,
+        database=parsed.database,
+    )
     return plain.render_as_string(hide_password=False), env
 
 
@@ -71,9 +77,13 @@ def _run(args: list[str], env: dict[str, str], what: str) -> None:
     try:
         done = subprocess.run(args, env=env, capture_output=True, text=True, check=False)
     except FileNotFoundError:
-        raise BackupError(f"{what}: {args[0]} is not installed (PostgreSQL's client programs are needed)") from None
+        raise BackupError(
+            f"{what}: {args[0]} is not installed (PostgreSQL's client programs are needed)"
+        ) from None
     if done.returncode != 0:
-        raise BackupError(f"{what} failed ({args[0]} exit {done.returncode}): {done.stderr.strip()[-1000:]}")
+        raise BackupError(
+            f"{what} failed ({args[0]} exit {done.returncode}): {done.stderr.strip()[-1000:]}"
+        )
 
 
 def _copy_hashed(src: Path, dest: Path) -> tuple[str, int]:
@@ -119,8 +129,21 @@ def _snapshot_postgres(url: str, dest: Path) -> list[tuple[str, int]]:
         with engine.connect() as conn:
             conn.execute(text("SET TRANSACTION ISOLATION LEVEL REPEATABLE READ, READ ONLY"))
             snapshot = conn.execute(text("SELECT pg_export_snapshot()")).scalar_one()
-            rows = conn.execute(text("SELECT sha256, size_bytes FROM artifacts ORDER BY sha256")).all()
-            _run(["pg_dump", "--format=custom", "--no-owner", f"--snapshot={snapshot}", f"--file={dest}", conninfo], env, "pg_dump")
+            rows = conn.execute(
+                text("SELECT sha256, size_bytes FROM artifacts ORDER BY sha256")
+            ).all()
+            _run(
+                [
+                    "pg_dump",
+                    "--format=custom",
+                    "--no-owner",
+                    f"--snapshot={snapshot}",
+                    f"--file={dest}",
+                    conninfo,
+                ],
+                env,
+                "pg_dump",
+            )
             conn.rollback()
     finally:
         engine.dispose()
@@ -149,10 +172,16 @@ def backup(settings: Settings, folder: Path) -> BackupSummary:
     for sha, size in artifacts:
         src = store.path_of(sha)
         if not src.is_file():
-            raise BackupError(f"artifact {sha}: recorded in the database copy but its file {src} is gone (deleted during the backup, or lost: run csa doctor); run the backup again")
+            raise BackupError(
+                f"artifact {sha}: recorded in the database copy but its file {src} is gone "
+                "(deleted during the backup, or lost: run csa doctor); run the backup again"
+            )
         got, got_size = _copy_hashed(src, folder / "artifacts" / sha[:2] / sha)
         if got != sha or got_size != size:
-            raise BackupError(f"artifact {sha}: the file {src} does not match its checksum and size ({got_size} bytes, recorded {size}); run csa doctor")
+            raise BackupError(
+                f"artifact {sha}: the file {src} does not match its checksum and size ({got_size} "
+                f"bytes, recorded {size}); run csa doctor"
+            )
         total += size
     key_file = settings.data_dir / API_KEY_FILE
     if key_file.is_file():
@@ -175,13 +204,18 @@ def backup(settings: Settings, folder: Path) -> BackupSummary:
 def read_manifest(folder: Path) -> dict:
     path = Path(folder) / MANIFEST
     if not path.is_file():
-        raise BackupError(f"{path}: missing (not a backup made by csa backup, or one that did not finish)")
+        raise BackupError(
+            f"{path}: missing (not a backup made by csa backup, or one that did not finish)"
+        )
     try:
         manifest = json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise BackupError(f"{path}: not readable JSON ({e})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-        raise BackupError(f"{path}: format {manifest.get('format') if isinstance(manifest, dict) else None!r}, this version reads format {FORMAT}")
+        raise BackupError(
+            f"{path}: format {manifest.get('format') if isinstance(manifest, dict) else None!r}, "
+            f"this version reads format {FORMAT}"
+        )
     return manifest
 
 
@@ -192,7 +226,9 @@ def check_backup(folder: Path) -> dict:
     manifest = read_manifest(folder)
     db_file = folder / manifest["database_file"]
     if not db_file.is_file() or sha256_file(db_file) != manifest["database_sha256"]:
-        raise BackupError(f"{db_file}: missing or not the file the manifest records (sha256 differs)")
+        raise BackupError(
+            f"{db_file}: missing or not the file the manifest records (sha256 differs)"
+        )
     for sha, size in manifest["artifacts"].items():
         blob = folder / "artifacts" / sha[:2] / sha
         if not blob.is_file():
@@ -218,18 +254,28 @@ def restore(settings: Settings, folder: Path, force: bool = False) -> BackupSumm
     url = settings.resolved_database_url
     kind = _backend(url)
     if manifest["database"] != kind:
-        raise BackupError(f"{folder / MANIFEST}: the backup holds a {manifest['database']} database, the target is {kind} (database_url)")
+        raise BackupError(
+            f"{folder / MANIFEST}: the backup holds a {manifest['database']} database, the target "
+            f"is {kind} (database_url)"
+        )
     artifact_dir = settings.resolved_artifact_dir
     blobs = artifact_dir / "blobs"
-    has_blobs = blobs.is_dir() and any(p.is_file() for d in blobs.iterdir() if d.is_dir() for p in d.iterdir())
+    has_blobs = blobs.is_dir() and any(
+        p.is_file() for d in blobs.iterdir() if d.is_dir() for p in d.iterdir()
+    )
     if kind == "sqlite":
         db_file = Path(make_url(url).database or "")
         has_db = db_file.is_file()
     else:
         has_db = _postgres_has_tables(url)
     if (has_db or has_blobs) and not force:
-        what = " and ".join(w for w, yes in (("a database", has_db), ("artifact files", has_blobs)) if yes)
-        raise BackupError(f"{settings.data_dir}: the target holds {what}; restore into an empty data folder and database, or pass --force to replace them")
+        what = " and ".join(
+            w for w, yes in (("a database", has_db), ("artifact files", has_blobs)) if yes
+        )
+        raise BackupError(
+            f"{settings.data_dir}: the target holds {what}; restore into an empty data folder and "
+            "database, or pass --force to replace them"
+        )
 
     if kind == "sqlite":
         db_file.parent.mkdir(parents=True, exist_ok=True)
@@ -239,7 +285,18 @@ def restore(settings: Settings, folder: Path, force: bool = False) -> BackupSumm
     else:
         conninfo, env = _pg_conninfo(url)
         clean = ["--clean", "--if-exists"] if has_db else []
-        _run(["pg_restore", "--no-owner", "--exit-on-error", *clean, f"--dbname={conninfo}", str(folder / manifest["database_file"])], env, "pg_restore")
+        _run(
+            [
+                "pg_restore",
+                "--no-owner",
+                "--exit-on-error",
+                *clean,
+                f"--dbname={conninfo}",
+                str(folder / manifest["database_file"]),
+            ],
+            env,
+            "pg_restore",
+        )
 
     if force:
         for sub in ("blobs", "tmp"):

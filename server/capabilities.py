@@ -70,7 +70,10 @@ def missing_reason(name: str) -> str | None:
         try:
             module = importlib.import_module(module_name)
         except ImportError as e:
-            return f"{cap.purpose} is not available in this build ({module_name} cannot be imported: {e})"
+            return (
+                f"{cap.purpose} is not available in this build ({module_name} cannot be imported: "
+                f"{e})"
+            )
         if not callable(getattr(module, attr, None)):
             absent.append(f"{module_name}.{attr}")
     if absent:

@@ -25,12 +25,29 @@ SERVER_EXTRA_HINT = "the service needs the server extra (pip install 'csa[server
 def register_serve(sub: argparse._SubParsersAction) -> None:
     """``csa serve``: the REST API plus its job executor unless ``--no-worker``."""
     p = sub.add_parser("serve", help="run the adaptation service (REST API and its job executor)")
-    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1; 0.0.0.0 in containers)")
+    p.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to listen on (default 127.0.0.1; 0.0.0.0 in containers)",
+    )
     p.add_argument("--port", type=int, default=8000)
-    p.add_argument("--data-dir", type=Path, default=None, help="database, artifacts and API key (default: $CSA_DATA_DIR or ./csa-data)")
-    p.add_argument("--database-url", default=None, help="SQLAlchemy URL (default: SQLite in the data folder)")
-    p.add_argument("--no-worker", action="store_true", help="run no jobs from this process (an API replica beside one that runs them)")
-    p.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"))
+    p.add_argument(
+        "--data-dir",
+        type=Path,
+        default=None,
+        help="database, artifacts and API key (default: $CSA_DATA_DIR or ./csa-data)",
+    )
+    p.add_argument(
+        "--database-url", default=None, help="SQLAlchemy URL (default: SQLite in the data folder)"
+    )
+    p.add_argument(
+        "--no-worker",
+        action="store_true",
+        help="run no jobs from this process (an API replica beside one that runs them)",
+    )
+    p.add_argument(
+        "--log-level", default="info", choices=("critical", "error", "warning", "info", "debug")
+    )
     p.set_defaults(func=run_serve)
 
 
@@ -64,16 +81,36 @@ def register_keys(sub: argparse._SubParsersAction) -> None:
     """``csa keys create|list|revoke``: the service's API keys, straight in its database
     (docs/operations.md "API keys"); the admin routes under /api/v1/keys do the same."""
     p = sub.add_parser("keys", help="create, list and revoke the service's API keys")
-    p.add_argument("--data-dir", type=Path, default=None, help="the service's data folder (default: $CSA_DATA_DIR or ./csa-data)")
-    p.add_argument("--database-url", default=None, help="the service's database (default: SQLite in the data folder)")
+    p.add_argument(
+        "--data-dir",
+        type=Path,
+        default=None,
+        help="the service's data folder (default: $CSA_DATA_DIR or ./csa-data)",
+    )
+    p.add_argument(
+        "--database-url",
+        default=None,
+        help="the service's database (default: SQLite in the data folder)",
+    )
     actions = p.add_subparsers(dest="keys_action", required=True)
-    create = actions.add_parser("create", help="make a key and print it once (only its sha256 is stored)")
-    create.add_argument("--name", required=True, help="unique name, also after revocation (robot-7)")
+    create = actions.add_parser(
+        "create", help="make a key and print it once (only its sha256 is stored)"
+    )
+    create.add_argument(
+        "--name", required=True, help="unique name, also after revocation (robot-7)"
+    )
     create.add_argument("--scope", required=True, choices=("device", "operator", "admin"))
-    create.add_argument("--expires", default=None, metavar="DURATION", help="lifetime: 30d, 12h, 90m or 2w (default: none)")
+    create.add_argument(
+        "--expires",
+        default=None,
+        metavar="DURATION",
+        help="lifetime: 30d, 12h, 90m or 2w (default: none)",
+    )
     listing = actions.add_parser("list", help="the keys: name, prefix, scope, state and times")
     listing.add_argument("--active", action="store_true", help="leave out revoked keys")
-    revoke = actions.add_parser("revoke", help="revoke a key by name or prefix (effective at its next request)")
+    revoke = actions.add_parser(
+        "revoke", help="revoke a key by name or prefix (effective at its next request)"
+    )
     revoke.add_argument("ref", metavar="NAME|PREFIX")
     p.set_defaults(func=run_keys)
 
@@ -107,7 +144,14 @@ def run_keys(args: argparse.Namespace) -> int:
             elif args.keys_action == "list":
                 rows = list(db.scalars(keys_query(include_revoked=not args.active)))
                 header = (
-                    "NAME", "PREFIX", "SCOPE", "STATE", "CREATED", "EXPIRES", "LAST USED", "REVOKED"
+                    "NAME",
+                    "PREFIX",
+                    "SCOPE",
+                    "STATE",
+                    "CREATED",
+                    "EXPIRES",
+                    "LAST USED",
+                    "REVOKED",
                 )
                 table = [header]
                 for k in rows:
@@ -128,22 +172,39 @@ def run_keys(args: argparse.Namespace) -> int:
 
 
 def _data_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data-dir", type=Path, default=None, help="the service's data folder (default: $CSA_DATA_DIR or ./csa-data)")
-    p.add_argument("--database-url", default=None, help="the service's database (default: SQLite in the data folder)")
+    p.add_argument(
+        "--data-dir",
+        type=Path,
+        default=None,
+        help="the service's data folder (default: $CSA_DATA_DIR or ./csa-data)",
+    )
+    p.add_argument(
+        "--database-url",
+        default=None,
+        help="the service's database (default: SQLite in the data folder)",
+    )
 
 
 def register_doctor(sub: argparse._SubParsersAction) -> None:
     """``csa doctor``: leftovers of crashes between the database and the artifact store, and
     their repair (docs/operations.md "csa doctor")."""
-    p = sub.add_parser("doctor", help="find (and repair) orphan blobs, missing blobs, half-written files and stuck jobs")
+    p = sub.add_parser(
+        "doctor",
+        help="find (and repair) orphan blobs, missing blobs, half-written files and stuck jobs",
+    )
     _data_args(p)
-    p.add_argument("--dry-run", action="store_true", help="only report what is wrong; change nothing")
+    p.add_argument(
+        "--dry-run", action="store_true", help="only report what is wrong; change nothing"
+    )
     p.add_argument(
         "--min-age",
         type=float,
         default=None,
         metavar="SECONDS",
-        help="leave unrecorded files and upload folders younger than this (default: 0 when no executor is alive, else CSA_ORPHAN_BLOB_GRACE_SECONDS)",
+        help=(
+            "leave unrecorded files and upload folders younger than this (default: 0 when no "
+            "executor is alive, else CSA_ORPHAN_BLOB_GRACE_SECONDS)"
+        ),
     )
     p.set_defaults(func=run_doctor)
 
@@ -167,7 +228,10 @@ def run_doctor(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     url = make_url(settings.resolved_database_url)
     if url.get_backend_name() == "sqlite" and not Path(url.database or "").is_file():
-        print(f"csa doctor: {url.database}: no database file (wrong --data-dir or --database-url?)", file=sys.stderr)
+        print(
+            f"csa doctor: {url.database}: no database file (wrong --data-dir or --database-url?)",
+            file=sys.stderr,
+        )
         return 2
     engine = make_engine(settings.resolved_database_url)
     try:
@@ -186,7 +250,11 @@ def run_doctor(args: argparse.Namespace) -> int:
     finally:
         engine.dispose()
     if report.unrepairable:
-        print(f"csa doctor: {len(report.unrepairable)} stored file(s) missing or corrupt; restore a backup (docs/operations.md)", file=sys.stderr)
+        print(
+            f"csa doctor: {len(report.unrepairable)} stored file(s) missing or corrupt; restore a "
+            "backup (docs/operations.md)",
+            file=sys.stderr,
+        )
         return 1
     if args.dry_run and report.problems:
         return 1
@@ -196,7 +264,9 @@ def run_doctor(args: argparse.Namespace) -> int:
 def register_backup(sub: argparse._SubParsersAction) -> None:
     """``csa backup DIR``: the database, then the blobs it records, with checksums
     (docs/operations.md "Backup and restore")."""
-    p = sub.add_parser("backup", help="copy the service's database and artifact store into a new folder")
+    p = sub.add_parser(
+        "backup", help="copy the service's database and artifact store into a new folder"
+    )
     p.add_argument("folder", type=Path, metavar="DIR", help="a new or empty folder")
     _data_args(p)
     p.set_defaults(func=run_backup)
@@ -204,10 +274,16 @@ def register_backup(sub: argparse._SubParsersAction) -> None:
 
 def register_restore(sub: argparse._SubParsersAction) -> None:
     """``csa restore DIR``: a backup in place of the service's data (the service stopped)."""
-    p = sub.add_parser("restore", help="put a backup made by csa backup in place of the service's data")
+    p = sub.add_parser(
+        "restore", help="put a backup made by csa backup in place of the service's data"
+    )
     p.add_argument("folder", type=Path, metavar="DIR", help="a folder made by csa backup")
     _data_args(p)
-    p.add_argument("--force", action="store_true", help="replace a target that already holds a database or artifact files")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace a target that already holds a database or artifact files",
+    )
     p.set_defaults(func=run_restore)
 
 
@@ -235,5 +311,8 @@ def _backup_or_restore(args: argparse.Namespace, action: str) -> int:
         print(f"csa {action}: {e}", file=sys.stderr)
         return 1
     verb = "backed up" if action == "backup" else "restored"
-    print(f"{verb} the {done.database} database and {done.artifacts} artifact file(s), {done.artifact_bytes} bytes ({done.folder})")
+    print(
+        f"{verb} the {done.database} database and {done.artifacts} artifact file(s), "
+        f"{done.artifact_bytes} bytes ({done.folder})"
+    )
     return 0

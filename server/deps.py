@@ -42,7 +42,9 @@ async def refuse_unknown_form_parts(request: Request) -> None:
     counts = Counter(key for key, _ in form.multi_items())
     unknown = sorted(key for key in counts if key not in allowed)
     if unknown:
-        raise invalid(unknown[0], f"unknown form part (this route takes {', '.join(sorted(allowed))})")
+        raise invalid(
+            unknown[0], f"unknown form part (this route takes {', '.join(sorted(allowed))})"
+        )
     repeated = sorted(key for key, n in counts.items() if n > 1)
     if repeated:
         raise invalid(repeated[0], "form part sent more than once (send each part once)")

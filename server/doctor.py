@@ -42,11 +42,15 @@ class DoctorReport:
     orphan_blobs: list[str] = field(default_factory=list)  # blob files without an artifact row
     temp_files: list[str] = field(default_factory=list)  # tmp/*.part: writes that never finished
     unreferenced_rows: list[str] = field(default_factory=list)  # artifact rows nothing refers to
-    unrecorded_refs: list[str] = field(default_factory=list)  # named by a model/NeRF, no artifact row
+    unrecorded_refs: list[str] = field(
+        default_factory=list
+    )  # named by a model/NeRF, no artifact row
     missing_blobs: list[str] = field(default_factory=list)  # artifact rows whose file is gone
     corrupt_blobs: list[str] = field(default_factory=list)  # files that do not hash to their name
     stale_scratch: list[str] = field(default_factory=list)  # work folders of dead jobs / uploads
-    stuck_jobs: list[tuple[int, str]] = field(default_factory=list)  # (job id, why its owner is gone)
+    stuck_jobs: list[tuple[int, str]] = field(
+        default_factory=list
+    )  # (job id, why its owner is gone)
     min_age_s: float = 0.0
     live_workers: list[str] = field(default_factory=list)
     repaired: bool = False
@@ -54,7 +58,11 @@ class DoctorReport:
     @property
     def unrepairable(self) -> list[str]:
         """Problems a repair cannot fix: data whose bytes are gone."""
-        return self.missing_blobs + self.corrupt_blobs + [s for s in self.unrecorded_refs if s in self._unfixable_refs]
+        return (
+            self.missing_blobs
+            + self.corrupt_blobs
+            + [s for s in self.unrecorded_refs if s in self._unfixable_refs]
+        )
 
     _unfixable_refs: set[str] = field(default_factory=set)
 
@@ -78,17 +86,54 @@ class DoctorReport:
         done = self.repaired
         out = [
             f"{len(self.live_workers)} live executor(s): {', '.join(self.live_workers) or 'none'}; "
-            f"files younger than {self.min_age_s:g} s are left alone (they may belong to a request still running)"
+            f"files younger than {self.min_age_s:g} s are left alone (they may belong to a request "
+            "still running)"
         ]
         groups: list[tuple[str, list[str], str]] = [
-            ("blob files without an artifact row", self.orphan_blobs, "removed" if done else "would remove"),
-            ("half-written temporary files", self.temp_files, "removed" if done else "would remove"),
-            ("artifact rows nothing refers to", self.unreferenced_rows, "removed with their files" if done else "would remove with their files"),
-            ("checksums named by a model or NeRF without an artifact row", self.unrecorded_refs, "recorded when the file is intact" if done else "would record when the file is intact"),
-            ("artifact rows whose file is missing", self.missing_blobs, "cannot repair: restore a backup"),
-            ("blobs that do not match their checksum", self.corrupt_blobs, "cannot repair: restore a backup"),
-            ("scratch folders of dead jobs and uploads", self.stale_scratch, "removed" if done else "would remove"),
-            ("jobs running with no live owner", [f"job {i}: {why}" for i, why in self.stuck_jobs], "ended as the queue's recovery does" if done else "would re-queue (or fail after max attempts)"),
+            (
+                "blob files without an artifact row",
+                self.orphan_blobs,
+                "removed" if done else "would remove",
+            ),
+            (
+                "half-written temporary files",
+                self.temp_files,
+                "removed" if done else "would remove",
+            ),
+            (
+                "artifact rows nothing refers to",
+                self.unreferenced_rows,
+                "removed with their files" if done else "would remove with their files",
+            ),
+            (
+                "checksums named by a model or NeRF without an artifact row",
+                self.unrecorded_refs,
+                "recorded when the file is intact"
+                if done
+                else "would record when the file is intact",
+            ),
+            (
+                "artifact rows whose file is missing",
+                self.missing_blobs,
+                "cannot repair: restore a backup",
+            ),
+            (
+                "blobs that do not match their checksum",
+                self.corrupt_blobs,
+                "cannot repair: restore a backup",
+            ),
+            (
+                "scratch folders of dead jobs and uploads",
+                self.stale_scratch,
+                "removed" if done else "would remove",
+            ),
+            (
+                "jobs running with no live owner",
+                [f"job {i}: {why}" for i, why in self.stuck_jobs],
+                "ended as the queue's recovery does"
+                if done
+                else "would re-queue (or fail after max attempts)",
+            ),
         ]
         for title, items, action in groups:
             out.append(f"{title}: {len(items)}" + (f" ({action})" if items else ""))
@@ -135,7 +180,9 @@ def examine(
     report = DoctorReport()
     with session_scope(sessions) as s:
         report.live_workers = live_workers(s, lease_seconds)
-    report.min_age_s = min_age_s if min_age_s is not None else (grace_s if report.live_workers else 0.0)
+    report.min_age_s = (
+        min_age_s if min_age_s is not None else (grace_s if report.live_workers else 0.0)
+    )
 
     # Stuck jobs first: their scratch folders are stale only once they no longer run.
     with session_scope(sessions) as s:
@@ -167,14 +214,23 @@ def examine(
     # After the references are recorded, so that the sweep keeps their files.
     with session_scope(sessions) as s:
         for name in store.sweep_unrecorded(s, report.min_age_s, dry_run=not repair):
-            (report.temp_files if name.endswith(".part") or len(name) != 64 else report.orphan_blobs).append(name)
+            (
+                report.temp_files
+                if name.endswith(".part") or len(name) != 64
+                else report.orphan_blobs
+            ).append(name)
         verified = store.verify(s)
     report.missing_blobs, report.corrupt_blobs = sorted(verified.missing), sorted(verified.corrupt)
 
     with session_scope(sessions) as s:
         scratch = stale_scratch(s, work_dir, report.min_age_s)
     if not repair:  # the folders of the stuck jobs, which the repair ends first
-        scratch += [p for job_id, _ in report.stuck_jobs for p in sorted(work_dir.glob(f"job-{job_id}-*")) if p.is_dir()]
+        scratch += [
+            p
+            for job_id, _ in report.stuck_jobs
+            for p in sorted(work_dir.glob(f"job-{job_id}-*"))
+            if p.is_dir()
+        ]
     report.stale_scratch = [p.name for p in scratch]
     if repair:
         for p in scratch:

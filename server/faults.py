@@ -30,16 +30,29 @@ ENV = "CSA_FAULT_POINT"
 # Every point production code calls, with where it sits. A name not listed here is refused
 # when the variable is read, so a misspelt point cannot silently never fire.
 POINTS: dict[str, str] = {
-    "artifact.write": "the artifact store is about to write a blob's temporary file (server/artifacts.py)",
-    "artifact.tmp_written": "a blob's temporary file is written, not yet renamed to its checksum name",
-    "artifact.file_stored": "a file (checkpoint, model) is in the store under its checksum, its row not yet committed",
-    "frame.blobs_written": "a frame's images are in the store, its row not yet committed (server/frame_store.py)",
+    "artifact.write": (
+        "the artifact store is about to write a blob's temporary file (server/artifacts.py)"
+    ),
+    "artifact.tmp_written": (
+        "a blob's temporary file is written, not yet renamed to its checksum name"
+    ),
+    "artifact.file_stored": (
+        "a file (checkpoint, model) is in the store under its checksum, its row not yet committed"
+    ),
+    "frame.blobs_written": (
+        "a frame's images are in the store, its row not yet committed (server/frame_store.py)"
+    ),
     "archive.extracted": "an uploaded archive is extracted in the work folder, no frame stored yet",
-    "archive.frame_stored": "one frame of an archive is stored in the open transaction, the archive not yet committed",
+    "archive.frame_stored": (
+        "one frame of an archive is stored in the open transaction, the archive not yet committed"
+    ),
     "job.computed": (
         "a job's computation is done, its outputs not yet registered (server/jobs/phases.py)"
     ),
-    "job.registering": "a job's outputs are written and flushed, the transaction that ends the job not yet committed",
+    "job.registering": (
+        "a job's outputs are written and flushed, the transaction that ends the job not yet "
+        "committed"
+    ),
 }
 ACTIONS = ("kill", "enospc")
 
@@ -65,11 +78,15 @@ def parse(value: str | None) -> Fault | None:
     count = 1
     if len(parts) > 1:
         if not parts[1].isdigit() or int(parts[1]) < 1:
-            raise ValueError(f"{ENV}={value!r}: COUNT must be a whole number >= 1, got {parts[1]!r}")
+            raise ValueError(
+                f"{ENV}={value!r}: COUNT must be a whole number >= 1, got {parts[1]!r}"
+            )
         count = int(parts[1])
     action = parts[2] if len(parts) > 2 else "kill"
     if action not in ACTIONS:
-        raise ValueError(f"{ENV}={value!r}: ACTION must be one of {', '.join(ACTIONS)}, got {action!r}")
+        raise ValueError(
+            f"{ENV}={value!r}: ACTION must be one of {', '.join(ACTIONS)}, got {action!r}"
+        )
     return Fault(name, count, action)
 
 

@@ -34,8 +34,12 @@ class StoreOutcome:
 def scene_camera(scene: Scene) -> SceneCamera:
     return SceneCamera(
         intrinsics=Intrinsics.from_dict(scene.intrinsics) if scene.intrinsics else None,
-        depth_intrinsics=Intrinsics.from_dict(scene.depth_intrinsics) if scene.depth_intrinsics else None,
-        depth_size=(scene.depth_width, scene.depth_height) if scene.depth_width and scene.depth_height else None,
+        depth_intrinsics=Intrinsics.from_dict(scene.depth_intrinsics)
+        if scene.depth_intrinsics
+        else None,
+        depth_size=(scene.depth_width, scene.depth_height)
+        if scene.depth_width and scene.depth_height
+        else None,
     )
 
 
@@ -43,15 +47,24 @@ def _pose_list(pose: np.ndarray) -> list[list[float]]:
     return [[float(v) for v in row] for row in np.asarray(pose, dtype=np.float64)]
 
 
-def content_digest(color_sha: str, depth_sha: str, labels_sha: str | None, pose: list[list[float]]) -> str:
-    payload = json.dumps({"color": color_sha, "depth": depth_sha, "labels": labels_sha, "pose": pose}, sort_keys=True)
+def content_digest(
+    color_sha: str, depth_sha: str, labels_sha: str | None, pose: list[list[float]]
+) -> str:
+    payload = json.dumps(
+        {"color": color_sha, "depth": depth_sha, "labels": labels_sha, "pose": pose}, sort_keys=True
+    )
     return hashlib.sha256(payload.encode()).hexdigest()
 
 
 def digest_of(frame: ValidFrame) -> str:
     """The content digest a validated frame will have once stored."""
     sha = lambda b: hashlib.sha256(b).hexdigest()  # noqa: E731
-    return content_digest(sha(frame.color), sha(frame.depth), sha(frame.labels) if frame.labels is not None else None, _pose_list(frame.pose))
+    return content_digest(
+        sha(frame.color),
+        sha(frame.depth),
+        sha(frame.labels) if frame.labels is not None else None,
+        _pose_list(frame.pose),
+    )
 
 
 def _order_key(session: Session, scene_id: int, name: str) -> int:
@@ -66,18 +79,35 @@ def next_frame_name(session: Session, scene_id: int) -> str:
     return str(0 if top is None else top + 1)
 
 
-def store_frame(session: Session, store: ArtifactStore, scene: Scene, name: str, frame: ValidFrame, replace: bool = False) -> StoreOutcome:
+def store_frame(
+    session: Session,
+    store: ArtifactStore,
+    scene: Scene,
+    name: str,
+    frame: ValidFrame,
+    replace: bool = False,
+) -> StoreOutcome:
     """Store one validated frame in the session's transaction (the caller commits)."""
     digest = digest_of(frame)
     existing = session.scalar(select(Frame).where(Frame.scene_id == scene.id, Frame.name == name))
     if existing is not None and existing.content_sha256 == digest:
         return StoreOutcome(existing, created=False)
     if existing is not None and not replace:
-        raise conflict(f"frame {name!r} of scene {scene.name!r} already exists with other content (pass replace=true to overwrite it)", field="name")
+        raise conflict(
+            f"frame {name!r} of scene {scene.name!r} already exists with other content (pass "
+            "replace=true to overwrite it)",
+            field="name",
+        )
 
-    color = store.put_bytes(session, frame.color, "color", "image/jpeg" if frame.color_ext == ".jpg" else "image/png")
+    color = store.put_bytes(
+        session, frame.color, "color", "image/jpeg" if frame.color_ext == ".jpg" else "image/png"
+    )
     depth = store.put_bytes(session, frame.depth, "depth", "image/png")
-    labels = store.put_bytes(session, frame.labels, "labels", "image/png") if frame.labels is not None else None
+    labels = (
+        store.put_bytes(session, frame.labels, "labels", "image/png")
+        if frame.labels is not None
+        else None
+    )
     faults.point("frame.blobs_written")
     if scene.intrinsics is None and frame.intrinsics is not None:
         scene.intrinsics = frame.intrinsics.to_dict()
@@ -87,7 +117,11 @@ def store_frame(session: Session, store: ArtifactStore, scene: Scene, name: str,
         scene.depth_intrinsics = frame.depth_intrinsics.to_dict()
     pose = _pose_list(frame.pose)
     if existing is not None:
-        existing.color_sha256, existing.color_ext, existing.depth_sha256 = color.sha256, frame.color_ext, depth.sha256
+        existing.color_sha256, existing.color_ext, existing.depth_sha256 = (
+            color.sha256,
+            frame.color_ext,
+            depth.sha256,
+        )
         existing.labels_sha256 = labels.sha256 if labels else None
         existing.pose, existing.content_sha256 = pose, digest
         session.flush()

@@ -71,13 +71,19 @@ class NonFinitePose(APIError):
 
 def check_frame_name(name: str, field: str = "name") -> str:
     if not FRAME_NAME.fullmatch(name):
-        raise invalid(field, f"frame name {name!r} must be 1-64 letters, digits, '_', '-' or '.', starting with a letter or digit")
+        raise invalid(
+            field,
+            f"frame name {name!r} must be 1-64 letters, digits, '_', '-' or '.', starting with a "
+            "letter or digit",
+        )
     if name.isdigit() and int(name) > MAX_ID:  # numeric names are the frames' order keys
         raise invalid(field, f"numeric frame name {name} is larger than {MAX_ID}")
     return name
 
 
-def _decode_checked(data: bytes, field: str, max_pixels: int, tmp: Path, reader, **kw) -> np.ndarray:
+def _decode_checked(
+    data: bytes, field: str, max_pixels: int, tmp: Path, reader, **kw
+) -> np.ndarray:
     if not data:
         raise invalid(field, "empty file")
     fmt = image_format(data)
@@ -87,7 +93,9 @@ def _decode_checked(data: bytes, field: str, max_pixels: int, tmp: Path, reader,
     if size is None:
         raise invalid(field, "cannot decode image (unreadable header)")
     if size[0] < 1 or size[1] < 1 or size[0] * size[1] > max_pixels:
-        raise invalid(field, f"image is {size[0]}x{size[1]}, more than the limit of {max_pixels} pixels")
+        raise invalid(
+            field, f"image is {size[0]}x{size[1]}, more than the limit of {max_pixels} pixels"
+        )
     path = tmp / f"{field.replace('/', '_')}{fmt}"
     path.write_bytes(data)
     try:
@@ -132,7 +140,10 @@ def _same_aspect(a: tuple[int, int], b: tuple[int, int]) -> bool:
 
 def same_camera(a: Intrinsics, b: Intrinsics) -> bool:
     return np.allclose(
-        [a.fx, a.fy, a.cx, a.cy, a.width, a.height], [b.fx, b.fy, b.cx, b.cy, b.width, b.height], rtol=1e-6, atol=1e-6
+        [a.fx, a.fy, a.cx, a.cy, a.width, a.height],
+        [b.fx, b.fy, b.cx, b.cy, b.width, b.height],
+        rtol=1e-6,
+        atol=1e-6,
     )
 
 
@@ -140,17 +151,34 @@ def validate_frame(parts: FrameParts, scene: SceneCamera, max_pixels: int) -> Va
     """Check an uploaded frame against itself and its scene; raises :class:`APIError` (422)."""
     with tempfile.TemporaryDirectory(prefix="csa-frame-") as d:
         tmp = Path(d)
-        color = _decode_checked(parts.color, parts.field("color"), max_pixels, tmp, image_files.read_color)
+        color = _decode_checked(
+            parts.color, parts.field("color"), max_pixels, tmp, image_files.read_color
+        )
         color_size = (color.shape[1], color.shape[0])
-        depth = _decode_checked(parts.depth, parts.field("depth"), max_pixels, tmp, image_files.read_depth_mm)
+        depth = _decode_checked(
+            parts.depth, parts.field("depth"), max_pixels, tmp, image_files.read_depth_mm
+        )
         depth_size = (depth.shape[1], depth.shape[0])
         labels = None
         if parts.labels is not None:
-            labels = _decode_checked(parts.labels, parts.field("labels"), max_pixels, tmp, image_files.read_label_image, max_id=40)
+            labels = _decode_checked(
+                parts.labels,
+                parts.field("labels"),
+                max_pixels,
+                tmp,
+                image_files.read_label_image,
+                max_id=40,
+            )
         pose = parse_pose(parts.pose, parts.field("pose"), tmp)
-        intr = parse_intrinsics(parts.intrinsics, parts.field("intrinsics"), color_size, tmp) if parts.intrinsics else None
+        intr = (
+            parse_intrinsics(parts.intrinsics, parts.field("intrinsics"), color_size, tmp)
+            if parts.intrinsics
+            else None
+        )
         dintr = (
-            parse_intrinsics(parts.depth_intrinsics, parts.field("depth_intrinsics"), depth_size, tmp)
+            parse_intrinsics(
+                parts.depth_intrinsics, parts.field("depth_intrinsics"), depth_size, tmp
+            )
             if parts.depth_intrinsics
             else None
         )
@@ -158,23 +186,59 @@ def validate_frame(parts: FrameParts, scene: SceneCamera, max_pixels: int) -> Va
     if scene.intrinsics is not None:
         want = (scene.intrinsics.width, scene.intrinsics.height)
         if color_size != want:
-            raise invalid(parts.field("color"), f"size mismatch: colour is {color_size[0]}x{color_size[1]}, this scene's frames are {want[0]}x{want[1]}")
+            raise invalid(
+                parts.field("color"),
+                f"size mismatch: colour is {color_size[0]}x{color_size[1]}, this scene's frames "
+                f"are {want[0]}x{want[1]}",
+            )
         if intr is not None and not same_camera(intr, scene.intrinsics):
-            raise invalid(parts.field("intrinsics"), "differ from the intrinsics of this scene's earlier frames")
+            raise invalid(
+                parts.field("intrinsics"),
+                "differ from the intrinsics of this scene's earlier frames",
+            )
     elif intr is None:
-        raise invalid(parts.field("intrinsics"), "required with the first frame of a scene (3x3 or 4x4 matrix)")
+        raise invalid(
+            parts.field("intrinsics"),
+            "required with the first frame of a scene (3x3 or 4x4 matrix)",
+        )
     if scene.depth_size is not None and depth_size != scene.depth_size:
-        raise invalid(parts.field("depth"), f"size mismatch: depth is {depth_size[0]}x{depth_size[1]}, this scene's depth images are {scene.depth_size[0]}x{scene.depth_size[1]}")
+        raise invalid(
+            parts.field("depth"),
+            f"size mismatch: depth is {depth_size[0]}x{depth_size[1]}, this scene's depth images "
+            f"are {scene.depth_size[0]}x{scene.depth_size[1]}",
+        )
     # A scene has one depth camera, fixed by its first frame: its own (depth_intrinsics with
     # the first frame) or the colour camera scaled to the depth size (none with the first frame).
     if dintr is not None and scene.intrinsics is not None and scene.depth_intrinsics is None:
-        raise invalid(parts.field("depth_intrinsics"), "this scene's depth is the colour camera (its first frame came without depth intrinsics); a scene has one depth camera, so leave depth_intrinsics out or upload to a new scene")
-    if dintr is None and scene.depth_intrinsics is None and not _same_aspect(depth_size, color_size):
-        raise invalid(parts.field("depth"), f"size mismatch: depth is {depth_size[0]}x{depth_size[1]}, colour is {color_size[0]}x{color_size[1]} (aspect ratios differ; send depth_intrinsics for a separate depth camera)")
-    if scene.depth_intrinsics is not None and dintr is not None and not same_camera(dintr, scene.depth_intrinsics):
+        raise invalid(
+            parts.field("depth_intrinsics"),
+            "this scene's depth is the colour camera (its first frame came without depth "
+            "intrinsics); a scene has one depth camera, so leave depth_intrinsics out or upload to "
+            "a new scene",
+        )
+    if (
+        dintr is None
+        and scene.depth_intrinsics is None
+        and not _same_aspect(depth_size, color_size)
+    ):
+        raise invalid(
+            parts.field("depth"),
+            f"size mismatch: depth is {depth_size[0]}x{depth_size[1]}, colour is "
+            f"{color_size[0]}x{color_size[1]} (aspect ratios differ; send depth_intrinsics for a "
+            "separate depth camera)",
+        )
+    if (
+        scene.depth_intrinsics is not None
+        and dintr is not None
+        and not same_camera(dintr, scene.depth_intrinsics)
+    ):
         raise invalid(parts.field("depth_intrinsics"), "differ from this scene's depth intrinsics")
     if labels is not None and not _same_aspect((labels.shape[1], labels.shape[0]), color_size):
-        raise invalid(parts.field("labels"), f"size mismatch: labels are {labels.shape[1]}x{labels.shape[0]}, colour is {color_size[0]}x{color_size[1]}")
+        raise invalid(
+            parts.field("labels"),
+            f"size mismatch: labels are {labels.shape[1]}x{labels.shape[0]}, colour is "
+            f"{color_size[0]}x{color_size[1]}",
+        )
 
     return ValidFrame(
         color=parts.color,

@@ -21,7 +21,11 @@ def _as_id(ref: str | int) -> int | None:
 def get_scene(session: Session, ref: str | int) -> Scene:
     """A scene by id or by name; 404 otherwise."""
     ident = _as_id(ref)
-    scene = session.get(Scene, ident) if ident is not None else session.scalar(select(Scene).where(Scene.name == str(ref)))
+    scene = (
+        session.get(Scene, ident)
+        if ident is not None
+        else session.scalar(select(Scene).where(Scene.name == str(ref)))
+    )
     if scene is None:
         raise not_found("scene", ref)
     return scene
@@ -52,7 +56,12 @@ def require_ground_truth(session: Session, scene: Scene, field: str) -> Scene:
 def current_model(session: Session, lineage: str | None = None) -> ModelVersion | None:
     """The version marked current, or with ``lineage`` the newest version of that lineage."""
     if lineage is not None:
-        return session.scalar(select(ModelVersion).where(ModelVersion.lineage == lineage).order_by(ModelVersion.id.desc()).limit(1))
+        return session.scalar(
+            select(ModelVersion)
+            .where(ModelVersion.lineage == lineage)
+            .order_by(ModelVersion.id.desc())
+            .limit(1)
+        )
     return session.scalar(select(ModelVersion).where(ModelVersion.is_current.is_(True)).limit(1))
 
 
@@ -61,10 +70,19 @@ def get_model(session: Session, ref: str | int | None) -> ModelVersion:
     if ref is None or ref == "current":
         model = current_model(session)
         if model is None:
-            raise APIError(404, "not_found", "no current model version: register one (POST /api/v1/models) or run a pretrain job")
+            raise APIError(
+                404,
+                "not_found",
+                "no current model version: "
+                "register one (POST /api/v1/models) or run a pretrain job",
+            )
         return model
     ident = _as_id(ref)
-    model = session.get(ModelVersion, ident) if ident is not None else session.scalar(select(ModelVersion).where(ModelVersion.name == str(ref)))
+    model = (
+        session.get(ModelVersion, ident)
+        if ident is not None
+        else session.scalar(select(ModelVersion).where(ModelVersion.name == str(ref)))
+    )
     if model is None:
         raise not_found("model version", ref)
     return model

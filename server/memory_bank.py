@@ -42,7 +42,9 @@ def add_nerf(
     scene's active NeRF."""
     stored = store.put_file(session, checkpoint, "nerf")
     files, size = {NERF_FILE: stored.sha256}, stored.size_bytes
-    session.execute(update(NerfCheckpoint).where(NerfCheckpoint.scene_id == scene_id).values(active=False))
+    session.execute(
+        update(NerfCheckpoint).where(NerfCheckpoint.scene_id == scene_id).values(active=False)
+    )
     entry = NerfCheckpoint(
         scene_id=scene_id,
         job_id=job_id,
@@ -84,7 +86,10 @@ def lineage_nerfs(
         if sid is None or sid == exclude_scene_id or version.job_id is None:
             continue
         nerf = session.scalar(
-            select(NerfCheckpoint).where(NerfCheckpoint.scene_id == sid, NerfCheckpoint.job_id == version.job_id).order_by(NerfCheckpoint.id.desc()).limit(1)
+            select(NerfCheckpoint)
+            .where(NerfCheckpoint.scene_id == sid, NerfCheckpoint.job_id == version.job_id)
+            .order_by(NerfCheckpoint.id.desc())
+            .limit(1)
         )
         row = session.get(SceneRow, sid)
         if nerf is None or row is None or NERF_FILE not in nerf.files:
@@ -119,7 +124,10 @@ class StoredNerfMemory:
             return load_checkpoint(self.added[1], device=device)
         entry = next((e for e in self.entries if e.scene == scene), None)
         if entry is None:
-            raise LookupError(f"no NeRF of scene {scene!r} in this lineage's memory bank (have: {', '.join(self.scenes) or 'none'})")
+            raise LookupError(
+                f"no NeRF of scene {scene!r} in this lineage's memory bank (have: "
+                f"{', '.join(self.scenes) or 'none'})"
+            )
         return load_checkpoint(existing(entry.file), device=device)
 
     def add(self, scene: str, nerf: SemanticNerf) -> int:

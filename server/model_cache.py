@@ -1,4 +1,5 @@
-"""Segmentation networks loaded for inference, kept by checkpoint checksum (least recently used out)."""
+"""Segmentation networks loaded for inference, kept by checkpoint checksum (least recently used
+out)."""
 
 from __future__ import annotations
 
@@ -29,7 +30,9 @@ class ModelCache:
             if sha256 in self._items:
                 self._items.move_to_end(sha256)
                 return self._items[sha256]
-        net, card = load_checkpoint(self.store.open_verified(sha256), device=resolve_device(self.device))
+        net, card = load_checkpoint(
+            self.store.open_verified(sha256), device=resolve_device(self.device)
+        )
         with self._lock:
             self._items[sha256] = (net, card)
             while len(self._items) > self.size:
@@ -44,7 +47,12 @@ class ModelCache:
 
         net, card = self.get(sha256)
         with self._inference_lock:
-            return predict_labels(net, rgb, device=resolve_device(self.device), size=tuple(card.input_size) if card.input_size else None)
+            return predict_labels(
+                net,
+                rgb,
+                device=resolve_device(self.device),
+                size=tuple(card.input_size) if card.input_size else None,
+            )
 
     @property
     def inference_lock(self) -> threading.Lock:

@@ -81,7 +81,9 @@ def _render_thread(threads: int | None) -> None:
         default = torch.get_num_threads()
         torch.set_num_threads(threads)
         if default != threads:
-            restore = threading.Thread(target=torch.set_num_threads, args=(default,), name="render-threads")
+            restore = threading.Thread(
+                target=torch.set_num_threads, args=(default,), name="render-threads"
+            )
             restore.start()
             restore.join()
 
@@ -135,7 +137,9 @@ class NerfCache:
                     self._items.move_to_end(nerf_id)
                     return self._items[nerf_id]
             try:
-                nerf = load_checkpoint(self.store.open_verified(sha), device=resolve_device(self.device))
+                nerf = load_checkpoint(
+                    self.store.open_verified(sha), device=resolve_device(self.device)
+                )
                 with self._lock:
                     self._items[nerf_id] = nerf
                     while len(self._items) > self.size:
@@ -152,7 +156,9 @@ class NerfCache:
 
     # -- rendering -------------------------------------------------------------------------
 
-    def render_view(self, nerf_id: int, files: dict[str, str], pose: np.ndarray, intrinsics: Intrinsics) -> dict[str, np.ndarray]:
+    def render_view(
+        self, nerf_id: int, files: dict[str, str], pose: np.ndarray, intrinsics: Intrinsics
+    ) -> dict[str, np.ndarray]:
         """``color`` (H, W, 3) uint8 RGB, ``depth`` (H, W) metres, ``labels`` (H, W) uint8 NYU40
         ids, rendered in the calling thread: call it inside a render's turn (:meth:`run`,
         :meth:`call`)."""
@@ -166,7 +172,9 @@ class NerfCache:
 
         return render_image(nerf, pose, intrinsics, semantics=True)
 
-    def render(self, nerf_id: int, files: dict[str, str], pose: np.ndarray, intrinsics: Intrinsics) -> dict[str, np.ndarray]:
+    def render(
+        self, nerf_id: int, files: dict[str, str], pose: np.ndarray, intrinsics: Intrinsics
+    ) -> dict[str, np.ndarray]:
         """:meth:`render_view` in its turn, the calling thread waiting (see :meth:`call`)."""
         return self.call(partial(self.render_view, nerf_id, files, pose, intrinsics))
 
@@ -203,7 +211,10 @@ class NerfCache:
         with self._lock:
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(
-                    self.concurrency, thread_name_prefix="render", initializer=_render_thread, initargs=(self.threads,)
+                    self.concurrency,
+                    thread_name_prefix="render",
+                    initializer=_render_thread,
+                    initargs=(self.threads,),
                 )
             free = self._admitted < self.concurrency  # the pool runs in order: this one starts now
             future = self._pool.submit(self._timed, fn)
@@ -218,7 +229,9 @@ class NerfCache:
         finally:
             seconds = time.perf_counter() - t0
             with self._lock:
-                self._seconds = seconds if self._seconds is None else 0.8 * self._seconds + 0.2 * seconds
+                self._seconds = (
+                    seconds if self._seconds is None else 0.8 * self._seconds + 0.2 * seconds
+                )
 
     def _finished(self, _: Future) -> None:
         """A render ended, failed or was taken out of the queue."""

@@ -158,13 +158,16 @@ def stored_bytes(db: Session, key_id: int) -> int:
     """Bytes a key stores, from the database: its scenes' frame files and its checkpoints."""
     total = 0
     for column in (Frame.color_sha256, Frame.depth_sha256, Frame.labels_sha256):
-        total += db.scalar(
-            select(func.coalesce(func.sum(Artifact.size_bytes), 0))
-            .select_from(Frame)
-            .join(Scene, Scene.id == Frame.scene_id)
-            .join(Artifact, Artifact.sha256 == column)
-            .where(Scene.owner_key_id == key_id)
-        ) or 0
+        total += (
+            db.scalar(
+                select(func.coalesce(func.sum(Artifact.size_bytes), 0))
+                .select_from(Frame)
+                .join(Scene, Scene.id == Frame.scene_id)
+                .join(Artifact, Artifact.sha256 == column)
+                .where(Scene.owner_key_id == key_id)
+            )
+            or 0
+        )
     # Uploaded checkpoints have no job; their uploader is in meta (JSON, read here, not in SQL,
     # so that one query serves SQLite and PostgreSQL; the registry holds few versions).
     for size, meta in db.execute(

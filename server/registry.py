@@ -23,7 +23,9 @@ BATCHNORM_FILE = "batchnorm_memory.safetensors"
 
 
 def set_current(session: Session, model: ModelVersion) -> None:
-    session.execute(update(ModelVersion).where(ModelVersion.id != model.id).values(is_current=False))
+    session.execute(
+        update(ModelVersion).where(ModelVersion.id != model.id).values(is_current=False)
+    )
     model.is_current = True
     session.flush()
 
@@ -68,7 +70,10 @@ def register_checkpoint(
     )
     session.add(model)
     session.flush()
-    has_current = session.scalar(select(ModelVersion.id).where(ModelVersion.is_current.is_(True)).limit(1)) is not None
+    has_current = (
+        session.scalar(select(ModelVersion.id).where(ModelVersion.is_current.is_(True)).limit(1))
+        is not None
+    )
     if make_current or (make_current is None and not has_current):
         set_current(session, model)
     return model
@@ -80,7 +85,9 @@ def checkpoint_sha(model: ModelVersion) -> str:
 
 def lineage_chain(session: Session, lineage: str) -> list[ModelVersion]:
     """The versions of a lineage from its root along the newest child at each step."""
-    versions = session.scalars(select(ModelVersion).where(ModelVersion.lineage == lineage).order_by(ModelVersion.id)).all()
+    versions = session.scalars(
+        select(ModelVersion).where(ModelVersion.lineage == lineage).order_by(ModelVersion.id)
+    ).all()
     if not versions:
         return []
     by_parent: dict[int | None, list[ModelVersion]] = {}
@@ -94,7 +101,9 @@ def lineage_chain(session: Session, lineage: str) -> list[ModelVersion]:
     return chain
 
 
-def root_conflict(session: Session, name: str, lineage: str, starter: str) -> tuple[str, str] | None:
+def root_conflict(
+    session: Session, name: str, lineage: str, starter: str
+) -> tuple[str, str] | None:
     """``(field, problem)`` when a new lineage's root version named ``name`` cannot be made:
     a version holds the name (field ``name``) or ``lineage`` exists (field ``lineage``;
     ``starter``, e.g. "a pre-training", names what starts lineages in the message), or a
@@ -111,10 +120,18 @@ def _pending_root(session: Session, name: str, lineage: str) -> tuple[str, str] 
     named ``name`` (field ``name``) or the root of ``lineage`` (field ``lineage``) once it
     ends: the registry does not hold them yet, but taking them meanwhile would make a second
     root of the lineage, or fail that job on the name after all its training."""
-    active = select(Job).where(Job.kind == "pretrain", Job.status.in_((QUEUED, RUNNING))).order_by(Job.id)
+    active = (
+        select(Job)
+        .where(Job.kind == "pretrain", Job.status.in_((QUEUED, RUNNING)))
+        .order_by(Job.id)
+    )
     for job in session.scalars(active):
         if (job.params or {}).get("name") == name:
-            return "name", f"job {job.id} ({job.status}) registers a model version named {name!r} when it ends"
+            return (
+                "name",
+                f"job {job.id} ({job.status}) "
+                f"registers a model version named {name!r} when it ends",
+            )
         if job.lineage == lineage:
             return "lineage", f"job {job.id} ({job.status}) starts lineage {lineage!r} when it ends"
     return None

@@ -26,7 +26,9 @@ class RequestStats:
         self.count: dict[tuple[str, str, str], int] = defaultdict(int)
         self.latency_sum: dict[tuple[str, str], float] = defaultdict(float)
         self.latency_count: dict[tuple[str, str], int] = defaultdict(int)
-        self.latency_buckets: dict[tuple[str, str], list[int]] = defaultdict(lambda: [0] * len(BUCKETS))
+        self.latency_buckets: dict[tuple[str, str], list[int]] = defaultdict(
+            lambda: [0] * len(BUCKETS)
+        )
         self.started = time.time()
 
     def observe(self, method: str, route: str, status: int, seconds: float) -> None:
@@ -42,7 +44,12 @@ class RequestStats:
 
     def snapshot(self):
         with self._lock:
-            return dict(self.count), dict(self.latency_sum), dict(self.latency_count), {k: list(v) for k, v in self.latency_buckets.items()}
+            return (
+                dict(self.count),
+                dict(self.latency_sum),
+                dict(self.latency_count),
+                {k: list(v) for k, v in self.latency_buckets.items()},
+            )
 
 
 class RouteTemplates:
@@ -87,4 +94,6 @@ class RequestMetricsMiddleware:
             await self.app(scope, receive, send_wrapper)
         finally:
             method = scope["method"] if scope["method"] in METHODS else OTHER_METHOD
-            self.stats.observe(method, self.templates(scope["path"]), status, time.perf_counter() - start)
+            self.stats.observe(
+                method, self.templates(scope["path"]), status, time.perf_counter() - start
+            )

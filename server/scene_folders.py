@@ -48,10 +48,19 @@ def labels_problem(frames: int, unlabelled: int, example: str | None) -> str | N
 def missing_ground_truth(session: Session, scene: Scene) -> str | None:
     """Why ``scene`` cannot be read with ground truth (no frames, or frames without labels), or
     None: the rule of :func:`write_scene_folder`, checked early by the jobs' ``prepare``."""
-    n, labelled = session.execute(select(func.count(Frame.id), func.count(Frame.labels_sha256)).where(Frame.scene_id == scene.id)).one()
+    n, labelled = session.execute(
+        select(func.count(Frame.id), func.count(Frame.labels_sha256)).where(
+            Frame.scene_id == scene.id
+        )
+    ).one()
     example = None
     if n and labelled < n:
-        example = session.scalar(select(Frame.name).where(Frame.scene_id == scene.id, Frame.labels_sha256.is_(None)).order_by(Frame.order_key, Frame.name).limit(1))
+        example = session.scalar(
+            select(Frame.name)
+            .where(Frame.scene_id == scene.id, Frame.labels_sha256.is_(None))
+            .order_by(Frame.order_key, Frame.name)
+            .limit(1)
+        )
     return labels_problem(n, n - labelled, example)
 
 
@@ -76,11 +85,15 @@ def write_scene_folder(scene: SceneInput, dest: Path, ground_truth: bool = False
     color_cam = Intrinsics.from_dict(scene.intrinsics)
     _write_intrinsics(root / "intrinsic" / "intrinsic_color.txt", color_cam)
     if scene.depth_intrinsics:
-        _write_intrinsics(root / "intrinsic" / "intrinsic_depth.txt", Intrinsics.from_dict(scene.depth_intrinsics))
+        _write_intrinsics(
+            root / "intrinsic" / "intrinsic_depth.txt", Intrinsics.from_dict(scene.depth_intrinsics)
+        )
     for f in frames:
         link(f.color, root / "color" / f"{f.name}{f.color_ext}")
         link(f.depth, root / "depth" / f"{f.name}.png")
-        image_files.write_matrix(root / "pose" / f"{f.name}.txt", np.asarray(f.pose, dtype=np.float64))
+        image_files.write_matrix(
+            root / "pose" / f"{f.name}.txt", np.asarray(f.pose, dtype=np.float64)
+        )
         if ground_truth and f.labels is not None:
             link(f.labels, root / NYU40_FOLDER / f"{f.name}.png")
     return root

@@ -48,8 +48,12 @@ class Settings(BaseSettings):
     max_image_pixels: int = 4096 * 4096
     max_model_upload_bytes: int = 1024 * MiB
     max_inference_upload_bytes: int = 32 * MiB
-    orphan_blob_grace_seconds: float = 3600.0  # unrecorded blob files older than this are deleted by the background sweep
-    orphan_sweep_interval_seconds: float = 3600.0  # background sweep: at start, then this often (0: at start only)
+    orphan_blob_grace_seconds: float = (
+        3600.0  # unrecorded blob files older than this are deleted by the background sweep
+    )
+    orphan_sweep_interval_seconds: float = (
+        3600.0  # background sweep: at start, then this often (0: at start only)
+    )
 
     # Quotas per key (docs/operations.md "Quotas"; server/quotas.py); 0 turns one off. Admin
     # keys, the settings' keys among them, have none.
@@ -60,17 +64,29 @@ class Settings(BaseSettings):
     quota_queued_jobs_operator: int = Field(100, ge=0)  # queued jobs when an operator key queues
 
     # Jobs: where they run (docs/architecture.md, "Executors").
-    executor: Literal["embedded", "ray"] = "embedded"  # embedded: in this process; ray: on a Ray cluster
-    embedded_worker: bool = True  # run jobs from this process (false: API only, jobs wait in the queue)
-    ray_address: str = "local"  # a running cluster (host:port, "auto"), or "local": start one in this process
+    executor: Literal["embedded", "ray"] = (
+        "embedded"  # embedded: in this process; ray: on a Ray cluster
+    )
+    embedded_worker: bool = (
+        True  # run jobs from this process (false: API only, jobs wait in the queue)
+    )
+    ray_address: str = (
+        "local"  # a running cluster (host:port, "auto"), or "local": start one in this process
+    )
     ray_num_cpus: int | None = None  # CPUs of the "local" cluster (default: all of this machine's)
     ray_cpus_per_job: float = 1.0  # CPUs each job's task asks for (and its torch threads)
-    ray_max_running_jobs: int | None = None  # jobs handed to the cluster at once (default: its GPUs, else CPUs / per job)
+    ray_max_running_jobs: int | None = (
+        None  # jobs handed to the cluster at once (default: its GPUs, else CPUs / per job)
+    )
     ray_cancel_grace_seconds: float = 30.0  # a cancelled task still running after this is killed
     worker_poll_seconds: float = 1.0
-    lease_seconds: float = 30.0  # a running job whose lease is this old belongs to a dead API process
+    lease_seconds: float = (
+        30.0  # a running job whose lease is this old belongs to a dead API process
+    )
     heartbeat_seconds: float = 5.0
-    max_attempts: int = 2  # a job whose process (or Ray worker) died this many times fails instead of re-queueing
+    max_attempts: int = (
+        2  # a job whose process (or Ray worker) died this many times fails instead of re-queueing
+    )
     job_log_lines: int = 2000  # log lines kept per job
 
     # Server-sent events of job progress.
@@ -80,13 +96,17 @@ class Settings(BaseSettings):
     migrate_on_start: bool = True
     device: str = "auto"  # torch device for jobs and inference: auto (CUDA when present), cpu, cuda
     torch_threads: int | None = None  # torch.set_num_threads for jobs and inference
-    model_cache_size: int = 2  # segmentation networks kept loaded for inference (and NeRFs for renders)
+    model_cache_size: int = (
+        2  # segmentation networks kept loaded for inference (and NeRFs for renders)
+    )
 
     # Renders (POST /api/v1/scenes/{scene}/render, the dashboard's pseudo-label panels;
     # docs/operations.md "Rendering"; server/nerf_cache.py): this many at once per API process,
     # each on torch_threads (default: the cores) / this many threads.
     render_concurrency: int | None = Field(None, ge=1)  # default: the cores, at most 4
-    render_queue_seconds: float = Field(30.0, ge=0)  # a render that waits longer for its turn: 503 with Retry-After
+    render_queue_seconds: float = Field(
+        30.0, ge=0
+    )  # a render that waits longer for its turn: 503 with Retry-After
 
     @field_validator("api_keys", mode="before")
     @classmethod

@@ -49,7 +49,13 @@ def _connect(url: URL, timeout: int = 5):
     import psycopg
 
     return psycopg.connect(
-        host=url.host, port=url.port or 5432, user=url.username, password=url.password, dbname=url.database or "postgres", connect_timeout=timeout, autocommit=True
+        host=url.host,
+        port=url.port or 5432,
+        user=url.username,
+        password=url.password,
+        dbname=url.database or "postgres",
+        connect_timeout=timeout,
+        autocommit=True,
     )
 
 
@@ -68,7 +74,11 @@ def server_binaries() -> Path | None:
     on_path = shutil.which("pg_ctl")
     if on_path and shutil.which("initdb"):
         return Path(on_path).resolve().parent
-    found = [Path(p).parent for p in glob.glob("/usr/lib/postgresql/*/bin/pg_ctl") if (Path(p).parent / "initdb").is_file()]
+    found = [
+        Path(p).parent
+        for p in glob.glob("/usr/lib/postgresql/*/bin/pg_ctl")
+        if (Path(p).parent / "initdb").is_file()
+    ]
     found.sort(key=lambda p: int(p.parent.name) if p.parent.name.isdigit() else 0)
     return found[-1] if found else None
 
@@ -88,7 +98,9 @@ def _run_as() -> pwd.struct_passwd | None:
             return pwd.getpwnam(name)
         except KeyError:
             continue
-    raise PostgresUnavailable("running as root and neither a 'postgres' nor a 'nobody' account exists to run PostgreSQL")
+    raise PostgresUnavailable(
+        "running as root and neither a 'postgres' nor a 'nobody' account exists to run PostgreSQL"
+    )
 
 
 @dataclass
@@ -102,32 +114,89 @@ class PrivateServer:
 
     @property
     def url(self) -> URL:
-        return URL.create("postgresql+psycopg", username="postgres", host="127.0.0.1", port=self.port, database="postgres")
+        return URL.create(
+            "postgresql+psycopg",
+            username="postgres",
+            host="127.0.0.1",
+            port=self.port,
+            database="postgres",
+        )
 
     def _run(self, *args: str, timeout: float) -> subprocess.CompletedProcess:
-        kw = {"user": self.user.pw_uid, "group": self.user.pw_gid, "extra_groups": []} if self.user else {}
-        env = {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "LC_ALL": "C.UTF-8", "LANG": "C.UTF-8"}
-        return subprocess.run(args, cwd=self.folder, env=env, capture_output=True, text=True, timeout=timeout, check=False, **kw)
+        kw = (
+            {"user": self.user.pw_uid, "group": self.user.pw_gid, "extra_groups": []}
+            if self.user
+            else {}
+        )
+        env = {
+            "PATH": os.environ.get("PATH", "/usr/bin:/bin"),
+            "LC_ALL": "C.UTF-8",
+            "LANG": "C.UTF-8",
+        }
+        return subprocess.run(
+            args,
+            cwd=self.folder,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            check=False,
+            **kw,
+        )
 
     @classmethod
     def start(cls) -> PrivateServer:
         bin_dir = server_binaries()
         if bin_dir is None:
-            raise PostgresUnavailable("no initdb/pg_ctl found (install Debian's 'postgresql' package)")
+            raise PostgresUnavailable(
+                "no initdb/pg_ctl found (install Debian's 'postgresql' package)"
+            )
         user = _run_as()
         folder = Path(tempfile.mkdtemp(prefix="csa-test-pg-"))
         if user is not None:
             os.chown(folder, user.pw_uid, user.pw_gid)
         server = cls(folder, bin_dir, _free_port(), user)
         try:
-            init = server._run(str(bin_dir / "initdb"), "-D", "data", "-U", "postgres", "--auth=trust", "--encoding=UTF8", "--no-sync", timeout=_START_TIMEOUT_S)
+            init = server._run(
+                str(bin_dir / "initdb"),
+                "-D",
+                "data",
+                "-U",
+                "postgres",
+                "--auth=trust",
+                "--encoding=UTF8",
+                "--no-sync",
+                timeout=_START_TIMEOUT_S,
+            )
             if init.returncode != 0:
                 raise PostgresUnavailable(f"initdb failed: {init.stderr.strip()[-2000:]}")
-            options = f"-p {server.port} -k {folder} -c listen_addresses=127.0.0.1 -c fsync=off -c full_page_writes=off"
-            started = server._run(str(bin_dir / "pg_ctl"), "-D", "data", "-l", "server.log", "-o", options, "-w", "-t", str(_START_TIMEOUT_S), "start", timeout=_START_TIMEOUT_S + 10)
+            options = (
+                f"-p {server.port} -k {folder} -c listen_addresses=127.0.0.1 -c fsync=off -c "
+                "full_page_writes=off"
+            )
+            started = server._run(
+                str(bin_dir / "pg_ctl"),
+                "-D",
+                "data",
+                "-l",
+                "server.log",
+                "-o",
+                options,
+                "-w",
+                "-t",
+                str(_START_TIMEOUT_S),
+                "start",
+                timeout=_START_TIMEOUT_S + 10,
+            )
             if started.returncode != 0:
-                log = (folder / "server.log").read_text(errors="replace") if (folder / "server.log").is_file() else ""
-                raise PostgresUnavailable(f"pg_ctl start failed: {started.stderr.strip()[-1000:]} {log[-1000:]}")
+                log = (
+                    (folder / "server.log").read_text(errors="replace")
+                    if (folder / "server.log").is_file()
+                    else ""
+                )
+                raise PostgresUnavailable(
+                    f"pg_ctl start failed: {started.stderr.strip()[-1000:]} {log[-1000:]}"
+                )
         except BaseException:
             server.stop()
             raise
@@ -135,7 +204,16 @@ class PrivateServer:
 
     def stop(self) -> None:
         if (self.folder / "data" / "postmaster.pid").is_file():
-            self._run(str(self.bin_dir / "pg_ctl"), "-D", "data", "-m", "fast", "-w", "stop", timeout=_START_TIMEOUT_S)
+            self._run(
+                str(self.bin_dir / "pg_ctl"),
+                "-D",
+                "data",
+                "-m",
+                "fast",
+                "-w",
+                "stop",
+                timeout=_START_TIMEOUT_S,
+            )
         shutil.rmtree(self.folder, ignore_errors=True)
 
 
@@ -154,7 +232,9 @@ class PostgresDatabases:
         with _connect(self.admin_url) as conn:
             conn.execute(f'CREATE DATABASE "{name}"')
         self.created.append(name)
-        return self.admin_url.set(drivername="postgresql+psycopg", database=name).render_as_string(hide_password=False)
+        return self.admin_url.set(drivername="postgresql+psycopg", database=name).render_as_string(
+            hide_password=False
+        )
 
     def close(self) -> None:
         try:
@@ -174,7 +254,9 @@ def open_postgres() -> PostgresDatabases:
     try:
         import psycopg  # noqa: F401
     except ImportError:
-        raise PostgresUnavailable("the psycopg driver is not installed (pip install -e '.[server]')") from None
+        raise PostgresUnavailable(
+            "the psycopg driver is not installed (pip install -e '.[server]')"
+        ) from None
     if choice not in ("auto", "start"):
         url = make_url(choice)
         reason = _answers(url)

@@ -27,7 +27,10 @@ def run(capsys, *argv: str) -> tuple[int, str, str]:
 
 def test_building_the_parser_imports_neither_torch_nor_opencv_nor_the_web_stack():
     heavy = ("torch", "cv2", "fastapi", "uvicorn", "sqlalchemy", "pydantic_settings")
-    code = f"import sys; from csa_core.cli.main import build_parser; build_parser(); print(sorted(m for m in {heavy!r} if m in sys.modules))"
+    code = (
+        "import sys; from csa_core.cli.main import build_parser; build_parser(); "
+        f"print(sorted(m for m in {heavy!r} if m in sys.modules))"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]"
@@ -41,7 +44,13 @@ def test_serve_comes_from_the_services_entry_point():
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     assert list(sub.choices) == [*GROUPS, *service]
     args = build_parser().parse_args(["serve", "--port", "8123", "--no-worker", "--data-dir", "d"])
-    assert (args.port, args.no_worker, args.host, args.data_dir, args.func.__module__) == (8123, True, "127.0.0.1", Path("d"), "server.cli")
+    assert (args.port, args.no_worker, args.host, args.data_dir, args.func.__module__) == (
+        8123,
+        True,
+        "127.0.0.1",
+        Path("d"),
+        "server.cli",
+    )
 
 
 def test_serve_help_through_the_console_entry(capsys):
@@ -66,13 +75,19 @@ def test_plugins_add_commands_and_a_missing_one_is_a_note(monkeypatch, capsys):
         EntryPoint("gone", "no_such_package.cli:register", PLUGIN_GROUP),
         EntryPoint("data", "tests.test_cli:register_hello", PLUGIN_GROUP),  # a built-in name
     ]
-    monkeypatch.setattr(cli_main, "entry_points", lambda group: [ep for ep in plugins if ep.group == group])
+    monkeypatch.setattr(
+        cli_main, "entry_points", lambda group: [ep for ep in plugins if ep.group == group]
+    )
     code, out, err = run(capsys, "hello", "world")
     assert (code, out) == (0, "hello world\n")
     notes = err.splitlines()
     assert len(notes) == 2
-    assert notes[0].startswith("csa: note: command 'data' from tests.test_cli:register_hello ignored")
-    assert notes[1].startswith("csa: note: command 'gone' unavailable (no_such_package.cli:register)")
+    assert notes[0].startswith(
+        "csa: note: command 'data' from tests.test_cli:register_hello ignored"
+    )
+    assert notes[1].startswith(
+        "csa: note: command 'gone' unavailable (no_such_package.cli:register)"
+    )
 
 
 def test_service_flags_override_the_environment(monkeypatch, tmp_path):
@@ -83,7 +98,11 @@ def test_service_flags_override_the_environment(monkeypatch, tmp_path):
     monkeypatch.setenv("CSA_DATABASE_URL", "sqlite:///env.db")
     args = build_parser().parse_args(["serve", "--data-dir", str(tmp_path / "flag")])
     settings = settings_from_args(args, embedded_worker=False)
-    assert (settings.data_dir, settings.database_url, settings.embedded_worker) == (tmp_path / "flag", "sqlite:///env.db", False)
+    assert (settings.data_dir, settings.database_url, settings.embedded_worker) == (
+        tmp_path / "flag",
+        "sqlite:///env.db",
+        False,
+    )
     settings = settings_from_args(build_parser().parse_args(["serve"]))
     assert (settings.data_dir, settings.database_url) == (tmp_path / "from-env", "sqlite:///env.db")
 
@@ -96,9 +115,24 @@ def test_import_7scenes_camera_choices_are_the_importers():
 
 
 def test_import_7scenes_and_info(tmp_path, capsys, seven_scenes_dir):
-    code, out, _ = run(capsys, "data", "import-7scenes", str(seven_scenes_dir), str(tmp_path / "k"), "--every", "5", "--size", "80x60")
+    code, out, _ = run(
+        capsys,
+        "data",
+        "import-7scenes",
+        str(seven_scenes_dir),
+        str(tmp_path / "k"),
+        "--every",
+        "5",
+        "--size",
+        "80x60",
+    )
     assert code == 0 and "20 frames at 80x60" in out
-    assert sorted(p.name for p in (tmp_path / "k").iterdir()) == ["color", "depth", "intrinsic", "pose"]
+    assert sorted(p.name for p in (tmp_path / "k").iterdir()) == [
+        "color",
+        "depth",
+        "intrinsic",
+        "pose",
+    ]
     code, out, _ = run(capsys, "data", "info", str(tmp_path / "k"))
     assert code == 0 and "20 (16 train / 4 val)" in out and "% measured" in out
 
@@ -118,7 +152,15 @@ def test_eval_miou_command(tmp_path, capsys):
     pred = {"0": np.array([[1, 2], [2, 2]], np.uint8), "1": np.array([[2, 5], [1, 3]], np.uint8)}
     write_label_folder(tmp_path / "gt", gt)
     write_label_folder(tmp_path / "pred", pred)
-    code, out, _ = run(capsys, "eval", "miou", str(tmp_path / "pred"), str(tmp_path / "gt"), "--json", str(tmp_path / "m.json"))
+    code, out, _ = run(
+        capsys,
+        "eval",
+        "miou",
+        str(tmp_path / "pred"),
+        str(tmp_path / "gt"),
+        "--json",
+        str(tmp_path / "m.json"),
+    )
     assert code == 0
     # class 1: tp 2, fn 1, fp 0 -> 2/3; class 2: tp 3, fp 1 -> 3/4; class 3: 1
     summary = json.loads((tmp_path / "m.json").read_text())
@@ -140,7 +182,10 @@ def test_eval_miou_command(tmp_path, capsys):
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["data", "import-7scenes", "{tmp}/empty", "{tmp}/out"], "empty: no frame-XXXXXX.color.jpg"),
+        (
+            ["data", "import-7scenes", "{tmp}/empty", "{tmp}/out"],
+            "empty: no frame-XXXXXX.color.jpg",
+        ),
         (["data", "info", "{tmp}/nothing"], "nothing: scene folder not found"),
         (["data", "synth", "{tmp}/out", "--family", "no-such-family"], "no-such-family"),
         (["eval", "miou", "{tmp}/empty", "{tmp}/nothing"], "nothing"),
@@ -158,11 +203,26 @@ def test_bad_input_is_one_line_exit_2_and_no_output(tmp_path, capsys, argv, mess
 def test_console_script_prints_no_traceback(tmp_path):
     root = write_scene(make_random_scene(n=3), tmp_path / "s")
     (root / "color" / "10.png").write_bytes(b"\x89PNG broken")
-    proc = subprocess.run([sys.executable, "-m", "csa_core.cli.main", "data", "preview", str(root), "--out", str(tmp_path / "p")],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "csa_core.cli.main",
+            "data",
+            "preview",
+            str(root),
+            "--out",
+            str(tmp_path / "p"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr
-    assert proc.stderr.strip().endswith("color/10.png: cannot decode image (corrupt or not an image)")
+    assert proc.stderr.strip().endswith(
+        "color/10.png: cannot decode image (corrupt or not an image)"
+    )
     assert not (tmp_path / "p").exists()
 
 

@@ -58,5 +58,7 @@ def test_demo_label_fusion_option(tmp_path, capsys):
     fusion = json.loads((out / "report.json").read_text())["label_fusion"]
     assert fusion["scene"] == "office_1000_0" and fusion["train_views"] == 8
     assert 0.0 < fusion["noisy_miou"] < 1.0 and math.isfinite(fusion["fused_miou"])
-    assert (out / "fusion" / "office_1000_0.nerf.safetensors").stat().st_size == fusion["checkpoint_bytes"]
+    assert (out / "fusion" / "office_1000_0.nerf.safetensors").stat().st_size == fusion[
+        "checkpoint_bytes"
+    ]
     assert "label fusion on office_1000_0" in " ".join(capsys.readouterr().out.split())

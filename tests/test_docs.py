@@ -30,7 +30,10 @@ def headings(page: Path) -> set[str]:
 
 
 def test_citations_are_parsed_with_all_their_sections():
-    text = 'see docs/method.md "Predict", "Fuse in 3D" and "Adapt"; `docs/data-contract.md` ("The scene folder")'
+    text = (
+        'see docs/method.md "Predict", "Fuse in 3D" and "Adapt"; '
+        '`docs/data-contract.md` ("The scene folder")'
+    )
     assert citations(text) == [
         ("method.md", ["Predict", "Fuse in 3D", "Adapt"]),
         ("data-contract.md", ["The scene folder"]),
@@ -158,7 +161,9 @@ def resolves(dotted: str) -> bool:
     parts = dotted.split(".")
     for cut in range(len(parts), 0, -1):
         base = REPO.joinpath(*parts[:cut])
-        module = base.with_suffix(".py") if base.with_suffix(".py").is_file() else base / "__init__.py"
+        module = (
+            base.with_suffix(".py") if base.with_suffix(".py").is_file() else base / "__init__.py"
+        )
         if not module.is_file():
             continue
         rest = parts[cut:]
@@ -176,8 +181,14 @@ def test_code_named_in_the_docs_exists():
     stale = []
     for page in sorted(DOCS.glob("*.md")):
         text = page.read_text()
-        stale += [f"{page.name}: `{n}`" for n in sorted(set(CODE_NAME.findall(text))) if not resolves(n)]
-        stale += [f"{page.name}: {p}" for p in sorted(set(CODE_PATH.findall(text))) if not (REPO / p).is_file()]
+        stale += [
+            f"{page.name}: `{n}`" for n in sorted(set(CODE_NAME.findall(text))) if not resolves(n)
+        ]
+        stale += [
+            f"{page.name}: {p}"
+            for p in sorted(set(CODE_PATH.findall(text)))
+            if not (REPO / p).is_file()
+        ]
     assert stale == []
 
 

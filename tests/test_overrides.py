@@ -77,7 +77,13 @@ def test_values_are_parsed_by_the_declared_type():
 
     outer = apply_overrides(
         Outer(),
-        ["inner.sizes=[3, 4, 5]", "inner.scales=(2, 0.5)", "inner.limit=7", "inner.name=null", "level=2"],
+        [
+            "inner.sizes=[3, 4, 5]",
+            "inner.scales=(2, 0.5)",
+            "inner.limit=7",
+            "inner.name=null",
+            "level=2",
+        ],
     )
     assert outer.inner.sizes == [3, 4, 5] and outer.inner.scales == (2.0, 0.5)
     assert (outer.inner.limit, outer.inner.name, outer.level) == (7, None, 2)
@@ -114,7 +120,10 @@ def test_literals_tuples_and_lists_are_checked_item_by_item_and_never_evaluated(
     with pytest.raises(CSAInputError, match="expected one of 1, 2, got '3'"):
         apply_overrides(Outer(), ["level=3"])
     # a str field takes the text as it is
-    assert apply_overrides(adapt_preset("cpu"), ["seg.schedule=__import__('os')"]).seg.schedule == "__import__('os')"
+    assert (
+        apply_overrides(adapt_preset("cpu"), ["seg.schedule=__import__('os')"]).seg.schedule
+        == "__import__('os')"
+    )
 
 
 def test_an_unknown_key_lists_the_valid_fields_at_its_level():
@@ -123,12 +132,20 @@ def test_an_unknown_key_lists_the_valid_fields_at_its_level():
     assert err.value.where == "--set collapse.enabld=false"
     assert "unknown key 'collapse.enabld'" in err.value.problem
     assert "section 'collapse' has no field 'enabld'" in err.value.problem
-    assert "(valid: enabled, min_entropy_ratio, max_dominant_gain, min_kappa, fallback)" in err.value.problem
-    with pytest.raises(CSAInputError, match=r"AdaptConfig has no field 'modes' \(valid: mode, nerf, seg, joint"):
+    assert (
+        "(valid: enabled, min_entropy_ratio, max_dominant_gain, min_kappa, fallback)"
+        in err.value.problem
+    )
+    with pytest.raises(
+        CSAInputError, match=r"AdaptConfig has no field 'modes' \(valid: mode, nerf, seg, joint"
+    ):
         apply_overrides(adapt_preset("cpu"), ["modes=joint"])
     with pytest.raises(CSAInputError, match="'mode' is a field, not a section"):
         apply_overrides(adapt_preset("cpu"), ["mode.x=1"])
-    with pytest.raises(CSAInputError, match="'joint' is a section and cannot be set whole; set its fields: joint.rounds"):
+    with pytest.raises(
+        CSAInputError,
+        match="'joint' is a section and cannot be set whole; set its fields: joint.rounds",
+    ):
         apply_overrides(adapt_preset("cpu"), ["joint=1"])
     with pytest.raises(CSAInputError, match="expected KEY=VALUE"):
         apply_overrides(adapt_preset("cpu"), ["collapse.enabled"])
@@ -140,11 +157,19 @@ def test_an_optional_section_can_be_switched_off_but_not_set_whole():
     outer = apply_overrides(Outer(), ["extra.limit=2"])
     assert outer.extra.limit == 2
     assert apply_overrides(outer, ["extra=none"]).extra is None
-    with pytest.raises(CSAInputError, match="'extra' is none \\(off\\) in this config: it has no fields to set"):
+    with pytest.raises(
+        CSAInputError, match="'extra' is none \\(off\\) in this config: it has no fields to set"
+    ):
         apply_overrides(outer, ["extra.limit=3"])
     with pytest.raises(CSAInputError, match="expected Inner or none, got '1'"):
         apply_overrides(outer, ["extra=1"])
-    with pytest.raises(CSAInputError, match=r"cannot be set whole \(only to none or default: extra=none\); set its fields: extra.sizes"):
+    with pytest.raises(
+        CSAInputError,
+        match=(
+            r"cannot be set whole \(only to none or default: extra=none\); "
+            r"set its fields: extra.sizes"
+        ),
+    ):
         apply_overrides(Outer(), ["extra=1"])
     with pytest.raises(CSAInputError, match=r"switch it on first with extra=default"):
         apply_overrides(Outer(extra=None), ["extra.limit=3"])
@@ -160,7 +185,10 @@ def test_post_init_validation_runs_again_on_the_whole_tree():
     with pytest.raises(CSAInputError) as err:
         apply_overrides(adapt_preset("cpu"), ["seg.lr=1e-4", "mode=bogus"])
     assert err.value.where == "--set seg.lr=1e-4 --set mode=bogus"
-    assert "invalid config: AdaptConfig: mode must be one of gi_nl, ni_nl, joint, got 'bogus'" in err.value.problem
+    assert (
+        "invalid config: AdaptConfig: mode must be one of gi_nl, ni_nl, joint, got 'bogus'"
+        in err.value.problem
+    )
     with pytest.raises(CSAInputError, match="Inner: limit must not be negative"):
         apply_overrides(Outer(), ["inner.limit=-1"])
     assert apply_overrides(adapt_preset("cpu"), ["mode=gi_nl"]).mode == "gi_nl"
@@ -174,7 +202,20 @@ SET = ["--set", "collapse.enabled=false", "--set", "replay.buffer_size=5"]
 def test_csa_adapt_applies_set_after_the_preset_and_the_flags():
     from csa_core.cli.adapt import adapt_config
 
-    argv = ["adapt", "s0", "--model", "m.safetensors", "--out", "o", "--preset", "tiny", "--adabn", "on", "--seed", "3"]
+    argv = [
+        "adapt",
+        "s0",
+        "--model",
+        "m.safetensors",
+        "--out",
+        "o",
+        "--preset",
+        "tiny",
+        "--adabn",
+        "on",
+        "--seed",
+        "3",
+    ]
     args = build_parser().parse_args([*argv, *SET, "--set", "adabn=off", "--set", "nerf.seed=9"])
     config = adapt_config(args)
     assert (config.preset, config.collapse.enabled, config.replay.buffer_size) == ("tiny", False, 5)
@@ -185,8 +226,18 @@ def test_csa_adapt_applies_set_after_the_preset_and_the_flags():
 
 def test_a_bad_set_fails_before_anything_is_read_or_written(tmp_path, capsys):
     out = tmp_path / "out"
-    code = main(["adapt", str(tmp_path / "none"), "--model", str(tmp_path / "m.safetensors"), "--out", str(out),
-                 "--set", "replay.bufer_size=5"])
+    code = main(
+        [
+            "adapt",
+            str(tmp_path / "none"),
+            "--model",
+            str(tmp_path / "m.safetensors"),
+            "--out",
+            str(out),
+            "--set",
+            "replay.bufer_size=5",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1
     assert err.startswith("csa: error: --set replay.bufer_size=5: unknown key 'replay.bufer_size'")
@@ -199,19 +250,44 @@ def _inputs(args, tmp_path: Path):
     from csa_core.experiments.inputs import ExperimentInputs
 
     return ExperimentInputs(
-        model_path=args.model, model=None, card=SimpleNamespace(arch="a", weights_id="w", input_size=None), scenes=[], scene_paths=[], out=tmp_path,
-        preset=args.preset, seeds=[0, 1], device=args.device, mode=getattr(args, "mode", None),
-        adabn=getattr(args, "adabn", None), overrides=args.set,
+        model_path=args.model,
+        model=None,
+        card=SimpleNamespace(arch="a", weights_id="w", input_size=None),
+        scenes=[],
+        scene_paths=[],
+        out=tmp_path,
+        preset=args.preset,
+        seeds=[0, 1],
+        device=args.device,
+        mode=getattr(args, "mode", None),
+        adabn=getattr(args, "adabn", None),
+        overrides=args.set,
     )
 
 
 @pytest.mark.parametrize("name", ["pseudo-labels", "one-step", "multi-step", "footprint"])
 def test_every_experiment_takes_set_for_every_run(name, tmp_path):
-    argv = ["experiment", name, "--model", "m", "--scenes", "s", "--out", "o", "--preset", "tiny", *SET]
+    argv = [
+        "experiment",
+        name,
+        "--model",
+        "m",
+        "--scenes",
+        "s",
+        "--out",
+        "o",
+        "--preset",
+        "tiny",
+        *SET,
+    ]
     inputs = _inputs(build_parser().parse_args(argv), tmp_path)
     for seed in inputs.seeds:
         config = inputs.config(seed)
-        assert (config.collapse.enabled, config.replay.buffer_size, config.nerf.seed) == (False, 5, seed)
+        assert (config.collapse.enabled, config.replay.buffer_size, config.nerf.seed) == (
+            False,
+            5,
+            seed,
+        )
     assert inputs.describe()["overrides"] == ["collapse.enabled=false", "replay.buffer_size=5"]
 
 
@@ -220,26 +296,45 @@ def test_multi_step_adabn_variants_follow_set(tmp_path):
     off = _inputs(build_parser().parse_args([*base, "--set", "adabn=false"]), tmp_path)
     assert off.adabn_variants() == [False]
     assert off.config(0, adabn=off.adabn_variants()[0]).adabn is False
-    on = _inputs(build_parser().parse_args([*base, "--adabn", "off", "--set", "adabn=on"]), tmp_path)
+    on = _inputs(
+        build_parser().parse_args([*base, "--adabn", "off", "--set", "adabn=on"]), tmp_path
+    )
     assert on.adabn_variants() == [True]
     from csa_core.experiments.inputs import load_inputs
 
-    with pytest.raises(CSAInputError, match="--adabn both runs every method with and without AdaBN"):
-        load_inputs(tmp_path / "m", [tmp_path / "s"], tmp_path / "o", adabn="both", overrides=["adabn=off"])
-    with pytest.raises(CSAInputError, match="unknown key 'replay.bufer_size'"):  # before the checkpoint is read
-        load_inputs(tmp_path / "m", [tmp_path / "s"], tmp_path / "o", overrides=["replay.bufer_size=5"])
+    with pytest.raises(
+        CSAInputError, match="--adabn both runs every method with and without AdaBN"
+    ):
+        load_inputs(
+            tmp_path / "m", [tmp_path / "s"], tmp_path / "o", adabn="both", overrides=["adabn=off"]
+        )
+    with pytest.raises(
+        CSAInputError, match="unknown key 'replay.bufer_size'"
+    ):  # before the checkpoint is read
+        load_inputs(
+            tmp_path / "m", [tmp_path / "s"], tmp_path / "o", overrides=["replay.bufer_size=5"]
+        )
 
 
 def test_demo_and_nerf_fit_take_set(tmp_path):
     from csa_core.cli.demo import demo_config
     from csa_core.cli.nerf import fit_config
 
-    args = build_parser().parse_args(["demo", "--seed", "4", "--set", "pool_batchnorm=false", "--set", "mode=gi_nl"])
+    args = build_parser().parse_args(
+        ["demo", "--seed", "4", "--set", "pool_batchnorm=false", "--set", "mode=gi_nl"]
+    )
     config = demo_config(args, "cpu")
-    assert (config.pool_batchnorm, config.mode, config.seg.seed, config.seg.device) == (False, "gi_nl", 4, "cpu")
+    assert (config.pool_batchnorm, config.mode, config.seg.seed, config.seg.device) == (
+        False,
+        "gi_nl",
+        4,
+        "cpu",
+    )
 
     argv = ["nerf", "fit", "scene", "--out", "n.safetensors", "--steps", "50", "--dtype", "float32"]
-    cfg = fit_config(build_parser().parse_args([*argv, "--set", "optim.steps=70", "--set", "loss.free_space=0"]))
+    cfg = fit_config(
+        build_parser().parse_args([*argv, "--set", "optim.steps=70", "--set", "loss.free_space=0"])
+    )
     assert (cfg.optim.steps, cfg.storage_dtype, cfg.loss.free_space) == (70, "float32", 0.0)
     assert fit_config(build_parser().parse_args(argv)).optim.steps == 50
 
@@ -293,8 +388,14 @@ def test_the_augmentation_is_set_field_by_field_and_checked():
     with pytest.raises(CSAInputError, match="'seg.augment' is none"):
         apply_overrides(adapt_preset("cpu"), official)
     # cpu with ours (the earlier cpu) and with the official augmentation
-    assert apply_overrides(adapt_preset("cpu"), ["seg.augment=default"]).seg.augment == adapt_preset("tiny").seg.augment
-    assert apply_overrides(adapt_preset("cpu"), ["seg.augment=default", *official]).seg.augment == official_augment()
+    assert (
+        apply_overrides(adapt_preset("cpu"), ["seg.augment=default"]).seg.augment
+        == adapt_preset("tiny").seg.augment
+    )
+    assert (
+        apply_overrides(adapt_preset("cpu"), ["seg.augment=default", *official]).seg.augment
+        == official_augment()
+    )
     for item, message in (
         ("seg.augment.hflip=1.5", "hflip is a probability"),
         ("seg.augment.crop_scale=(0.9,0.5)", "crop_scale must be"),

@@ -210,6 +210,7 @@ def run_adapt(args: argparse.Namespace) -> int:
         )
         print(format_table(result))
     print(
-        f"\n{checkpoint}: adapted network ({method}); {args.out / 'results.json'}: scores and config"
+        f"\n{checkpoint}: adapted network ({method}); {args.out / 'results.json'}: scores and "
+        "config"
     )
     return 0

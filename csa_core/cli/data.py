@@ -18,7 +18,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("data", help="make, import, inspect and preview scene folders")
     cmds = p.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
 
-    s = cmds.add_parser("synth", help="render procedural rooms with NYU40 labels (the embedded default data)")
+    s = cmds.add_parser(
+        "synth", help="render procedural rooms with NYU40 labels (the embedded default data)"
+    )
     s.add_argument("out", type=Path, help="folder that receives one scene folder per room")
     s.add_argument("--scenes", type=positive_int, default=1)
     s.add_argument("--frames", type=positive_int, default=60)
@@ -42,8 +44,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("src", type=Path, help="clean scene folder (exact depth and labels)")
     g.add_argument("dst", type=Path, help="scene folder to write")
     g.add_argument("--seed", type=int, default=0)
-    g.add_argument("--source", default="label-nyu40", help="label folder the noisy labels start from")
-    g.add_argument("--target", default="label-noisy", help="label folder that receives the noisy labels")
+    g.add_argument(
+        "--source", default="label-nyu40", help="label folder the noisy labels start from"
+    )
+    g.add_argument(
+        "--target", default="label-noisy", help="label folder that receives the noisy labels"
+    )
     g.add_argument("--no-labels", action="store_true", help="degrade colour and depth only")
     g.add_argument("--overwrite", action="store_true")
     g.set_defaults(func=_degrade)
@@ -55,23 +61,34 @@ def register(sub: argparse._SubParsersAction) -> None:
     i.add_argument("src", type=Path)
     i.add_argument("out", type=Path)
     i.add_argument("--every", type=positive_int, default=1, help="keep every N-th frame")
-    i.add_argument("--size", type=size_arg, default=None, help="working size WxH (default: source size)")
+    i.add_argument(
+        "--size", type=size_arg, default=None, help="working size WxH (default: source size)"
+    )
     i.add_argument("--overwrite", action="store_true")
     i.add_argument(
         "--camera",
         choices=CAMERA_CHOICES,
         default="color",
-        help="color: move frames to the Kinect colour camera (default); depth: the raw depth-camera frames",
+        help=(
+            "color: move frames to the Kinect colour camera (default); depth: the raw depth-camera "
+            "frames"
+        ),
     )
     i.set_defaults(func=_import_7scenes)
 
     n = cmds.add_parser("info", help="summarise a scene folder")
     n.add_argument("scene", type=Path)
-    n.add_argument("--labels", default="all", help="label folder(s) to read, comma-separated, or 'all'")
-    n.add_argument("--label-map", type=Path, default=None, help="scannetv2-labels.combined.tsv for label-filt")
+    n.add_argument(
+        "--labels", default="all", help="label folder(s) to read, comma-separated, or 'all'"
+    )
+    n.add_argument(
+        "--label-map", type=Path, default=None, help="scannetv2-labels.combined.tsv for label-filt"
+    )
     n.set_defaults(func=_info)
 
-    v = cmds.add_parser("preview", help="write colourised labels and overlays for people to look at")
+    v = cmds.add_parser(
+        "preview", help="write colourised labels and overlays for people to look at"
+    )
     v.add_argument("scene", type=Path)
     v.add_argument("--out", type=Path, required=True)
     v.add_argument("--labels", default="label-nyu40", help="label folder to show")
@@ -133,7 +150,12 @@ def _import_7scenes(args: argparse.Namespace) -> int:
     from csa_core.data.sevenscenes import import_7scenes
 
     scene = import_7scenes(
-        args.src, args.out, every=args.every, size=args.size, overwrite=args.overwrite, camera=args.camera
+        args.src,
+        args.out,
+        every=args.every,
+        size=args.size,
+        overwrite=args.overwrite,
+        camera=args.camera,
     )
     w, h = scene.size
     print(f"{args.out}: {len(scene)} frames at {w}x{h} ({len(scene.skipped)} skipped)")
@@ -147,13 +169,21 @@ def _info(args: argparse.Namespace) -> int:
     scene = read_scene(args.scene, labels=_label_spec(args.labels), label_map=args.label_map)
     k = scene.intrinsics
     print(f"scene       {scene.name}")
-    print(f"frames      {len(scene)} ({scene.num_train} train / {len(scene.val_frames)} val), {len(scene.skipped)} skipped")
-    print(f"size        {k.width}x{k.height}  fx={k.fx:.2f} fy={k.fy:.2f} cx={k.cx:.2f} cy={k.cy:.2f}")
+    print(
+        f"frames      {len(scene)} ({scene.num_train} train / {len(scene.val_frames)} val), "
+        f"{len(scene.skipped)} skipped"
+    )
+    print(
+        f"size        {k.width}x{k.height}  fx={k.fx:.2f} fy={k.fy:.2f} cx={k.cx:.2f} cy={k.cy:.2f}"
+    )
     depths = [f.depth for f in scene.frames if f.depth is not None]
     if depths:
         d = np.stack(depths)
         valid = d > 0
-        print(f"depth       {valid.mean() * 100:.1f}% measured, {d[valid].min():.3f}..{d[valid].max():.3f} m")
+        print(
+            f"depth       {valid.mean() * 100:.1f}% measured, "
+            f"{d[valid].min():.3f}..{d[valid].max():.3f} m"
+        )
     else:
         print("depth       none")
     centres = np.stack([f.pose[:3, 3] for f in scene.frames])
@@ -164,7 +194,9 @@ def _info(args: argparse.Namespace) -> int:
         counts = np.bincount(labs.ravel(), minlength=41)
         top = [i for i in np.argsort(-counts) if i > 0 and counts[i] > 0]
         names = ", ".join(f"{CLASS_NAMES[i]} {counts[i] / labs.size * 100:.0f}%" for i in top[:8])
-        print(f"{folder:11s} {len(top)} classes, {counts[0] / labs.size * 100:.1f}% unknown; {names}")
+        print(
+            f"{folder:11s} {len(top)} classes, {counts[0] / labs.size * 100:.1f}% unknown; {names}"
+        )
     for s in scene.skipped:
         print(f"skipped     {s.name}: {s.reason}")
     return 0

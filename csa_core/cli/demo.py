@@ -40,24 +40,46 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=positive_int, default=60, help="frames per new scene")
     p.add_argument("--pretrain-family", default="apartment")
     p.add_argument("--pretrain-scenes", type=positive_int, default=16)
-    p.add_argument("--pretrain-frames", type=positive_int, default=30, help="frames per pre-training room")
+    p.add_argument(
+        "--pretrain-frames", type=positive_int, default=30, help="frames per pre-training room"
+    )
     p.add_argument("--pretrain-epochs", type=positive_int, default=20)
     p.add_argument("--target-family", default="office")
     p.add_argument("--target-scenes", type=positive_int, default=3)
-    p.add_argument("--mode", default="joint", choices=MODES, help="adaptation mode (default: joint training)")
-    p.add_argument("--preset", default="cpu", choices=tuple(ADAPT_PRESETS), help="adaptation budget")
+    p.add_argument(
+        "--mode", default="joint", choices=MODES, help="adaptation mode (default: joint training)"
+    )
+    p.add_argument(
+        "--preset", default="cpu", choices=tuple(ADAPT_PRESETS), help="adaptation budget"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default=None, help="torch device (default: cuda when available)")
-    p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's)")
+    p.add_argument(
+        "--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's)"
+    )
     p.add_argument(
         "--seven-scenes",
         type=Path,
         default=DEFAULT_SEVEN_SCENES,
         help="7-Scenes sequence to import if present",
     )
-    p.add_argument("--label-fusion", action="store_true", help="also fuse corrupted labels of a new scene in a NeRF")
-    p.add_argument("--fusion-size", type=size_arg, default=(80, 60), help="working size of the label-fusion step")
-    p.add_argument("--fusion-steps", type=positive_int, default=600, help="NeRF optimisation steps (fast preset)")
+    p.add_argument(
+        "--label-fusion",
+        action="store_true",
+        help="also fuse corrupted labels of a new scene in a NeRF",
+    )
+    p.add_argument(
+        "--fusion-size",
+        type=size_arg,
+        default=(80, 60),
+        help="working size of the label-fusion step",
+    )
+    p.add_argument(
+        "--fusion-steps",
+        type=positive_int,
+        default=600,
+        help="NeRF optimisation steps (fast preset)",
+    )
     add_set_argument(p, "AdaptConfig of the continual run", "pool_batchnorm=false")
     p.set_defaults(func=run_demo)
 
@@ -148,7 +170,15 @@ def _label_fusion(
     ckpt_bytes = save_checkpoint(nerf, out / f"{scene.name}.nerf.safetensors")
     with atomic_dir(out / "previews", overwrite=True) as tmp:
         for f in scene.train_frames[::8]:
-            row = np.concatenate([f.color, colorize(noisy[f.name]), colorize(fused[f.name]), colorize(f.labels["label-nyu40"])], axis=1)
+            row = np.concatenate(
+                [
+                    f.color,
+                    colorize(noisy[f.name]),
+                    colorize(fused[f.name]),
+                    colorize(f.labels["label-nyu40"]),
+                ],
+                axis=1,
+            )
             cv2.imwrite(str(tmp / f"{f.name}.png"), cv2.cvtColor(row, cv2.COLOR_RGB2BGR))
     return {
         "scene": scene.name,
@@ -170,7 +200,9 @@ def _print_summary(console, result, adabn: list[float], seed: int) -> list[dict]
     from csa_core.eval.continual import previous_row
 
     rows = summary_rows(result, adabn)
-    table = Table(title="validation mIoU (%) of every new scene; labels: mIoU (%) on its training views")
+    table = Table(
+        title="validation mIoU (%) of every new scene; labels: mIoU (%) on its training views"
+    )
     table.add_column("scene", justify="right")
     for title in SUMMARY_COLUMNS.values():
         table.add_column(title, justify="right")
@@ -180,15 +212,26 @@ def _print_summary(console, result, adabn: list[float], seed: int) -> list[dict]
     table.add_row("mean", *(f"{mean[k]:.1f}" for k in SUMMARY_COLUMNS), style="bold")
     console.print(table)
     prev = previous_row(result.R)
-    console.print("Previous (mean over earlier scenes after each step): " + ", ".join("-" if np.isnan(v) else f"{100 * v:.1f}" for v in prev))
+    console.print(
+        "Previous (mean over earlier scenes after each step): "
+        + ", ".join("-" if np.isnan(v) else f"{100 * v:.1f}" for v in prev)
+    )
     m = result.metrics
-    console.print("ACC {:.1f}  A {:.1f}  FWT {:+.1f}  BWT {:+.1f}  (mIoU points)".format(*(100 * m[k] for k in ("acc", "a", "fwt", "bwt"))))
+    console.print(
+        "ACC {:.1f}  A {:.1f}  FWT {:+.1f}  BWT {:+.1f}  (mIoU points)".format(
+            *(100 * m[k] for k in ("acc", "a", "fwt", "bwt"))
+        )
+    )
     gain = mean["after_all"] - mean["pretrained"]
     verdict = "beats" if gain > 0 else "does NOT beat"
-    console.print(f"the adapted network {verdict} the pre-trained one on the new scenes: {mean['after_all']:.1f}% vs {mean['pretrained']:.1f}% mean val mIoU ({gain:+.1f} points)")
+    console.print(
+        f"the adapted network {verdict} the pre-trained one on the new scenes: "
+        f"{mean['after_all']:.1f}% vs {mean['pretrained']:.1f}% mean val mIoU ({gain:+.1f} points)"
+    )
     console.print(
         f"This is one run (seed {seed}): "
-        "a single run moves by several points with the seed and the machine's floating-point paths, "
+        "a single run moves by several points with the seed and the machine's "
+        "floating-point paths, "
         "so its ordering is not a result. Over seeds: csa experiment multi-step --seeds 0,1,2 "
         "(README.md and benchmarks/results/continual.md report it as mean +- std)."
     )
@@ -284,36 +327,65 @@ def run_demo(args: argparse.Namespace) -> int:
             new[0], out / "fusion", args.fusion_size, args.fusion_steps, args.seed, device
         )
         report["label_fusion"] = fusion
-        ft = Table(title=f"label fusion on {fusion['scene']} ({fusion['train_views']} training views at "
-                         f"{fusion['size'][0]}x{fusion['size'][1]}, mIoU vs ground truth)")
-        for col in ("per-frame corrupted labels", "NeRF-rendered labels", "fit", "render", "checkpoint"):
+        ft = Table(
+            title=f"label fusion on {fusion['scene']} ({fusion['train_views']} training views at "
+            f"{fusion['size'][0]}x{fusion['size'][1]}, mIoU vs ground truth)"
+        )
+        for col in (
+            "per-frame corrupted labels",
+            "NeRF-rendered labels",
+            "fit",
+            "render",
+            "checkpoint",
+        ):
             ft.add_column(col)
-        ft.add_row(f"{fusion['noisy_miou'] * 100:.1f}%", f"{fusion['fused_miou'] * 100:.1f}%",
-                   f"{fusion['fit_seconds']:.0f} s", f"{fusion['render_seconds']:.0f} s",
-                   f"{fusion['checkpoint_bytes'] / 1e6:.2f} MB")
+        ft.add_row(
+            f"{fusion['noisy_miou'] * 100:.1f}%",
+            f"{fusion['fused_miou'] * 100:.1f}%",
+            f"{fusion['fit_seconds']:.0f} s",
+            f"{fusion['render_seconds']:.0f} s",
+            f"{fusion['checkpoint_bytes'] / 1e6:.2f} MB",
+        )
         console.print(ft)
-        console.print(f"fusion previews (colour | corrupted | fused | truth) in {out / 'fusion' / 'previews'}")
+        console.print(
+            f"fusion previews (colour | corrupted | fused | truth) in {out / 'fusion' / 'previews'}"
+        )
 
     console.rule(f"4. pre-training the light network on {len(pre)} {args.pretrain_family} rooms")
     t = time.perf_counter()
     pre_scenes = [scenes[p] for p in pre]
     target_scenes = [scenes[p] for p in new]
     model, info = pretrain_network(
-        pre_scenes, args.size, args.pretrain_epochs, args.seed, device, out / "pretrained.safetensors"
+        pre_scenes,
+        args.size,
+        args.pretrain_epochs,
+        args.seed,
+        device,
+        out / "pretrained.safetensors",
     )
     report["pretrain"] = info
     report["seconds"]["pretrain"] = time.perf_counter() - t
-    console.print(f"best epoch {info['best_epoch']}: {100 * (info['best_val_miou'] or 0):.1f}% mIoU on the "
-                  f"{args.pretrain_family} rooms' validation views; checkpoint {info['checkpoint']}")
+    console.print(
+        f"best epoch {info['best_epoch']}: {100 * (info['best_val_miou'] or 0):.1f}% mIoU on the "
+        f"{args.pretrain_family} rooms' validation views; checkpoint {info['checkpoint']}"
+    )
 
-    console.rule(f"5. continual adaptation to {len(new)} {args.target_family} rooms ({args.mode}, NeRF replay)")
+    console.rule(
+        f"5. continual adaptation to {len(new)} {args.target_family} rooms "
+        f"({args.mode}, NeRF replay)"
+    )
     t = time.perf_counter()
     adabn = adabn_only(model, target_scenes, config)
-    result = run_continual(model, target_scenes, config, out / "continual", pretrain_scenes=pre_scenes)
+    result = run_continual(
+        model, target_scenes, config, out / "continual", pretrain_scenes=pre_scenes
+    )
     report["seconds"]["adapt"] = time.perf_counter() - t
     console.print(format_table(result))
     report["summary"] = _print_summary(console, result, adabn, args.seed)
-    report["continual"] = {"results": str(out / "continual" / "results.json"), "metrics": result.metrics}
+    report["continual"] = {
+        "results": str(out / "continual" / "results.json"),
+        "metrics": result.metrics,
+    }
     plot = out / "plots" / "miou_per_step.png"
     plot.parent.mkdir(parents=True, exist_ok=True)
     plot_steps(plot, result)

@@ -22,7 +22,12 @@ from csa_core.data.scene import Scene
 
 
 def pretrain_network(
-    scenes: Sequence[Scene], size: tuple[int, int], epochs: int, seed: int, device: str | None, out: Path
+    scenes: Sequence[Scene],
+    size: tuple[int, int],
+    epochs: int,
+    seed: int,
+    device: str | None,
+    out: Path,
 ) -> tuple[Any, dict[str, Any]]:
     """Pre-train the default light network from scratch on ``scenes``; keep the best epoch."""
     from csa_core.seg.config import PretrainConfig, TrainConfig
@@ -53,7 +58,9 @@ def adabn_only(model: Any, scenes: Sequence[Scene], config: AdaptConfig) -> list
     scores = []
     for scene in scenes:
         m = copy.deepcopy(model)
-        apply_adabn(m, [f.color for f in scene.train_frames], seed=config.seg.seed, device=config.seg.device)
+        apply_adabn(
+            m, [f.color for f in scene.train_frames], seed=config.seg.seed, device=config.seg.device
+        )
         scores.append(evaluate_scene(m, scene, "val", device=config.seg.device).miou())
     return scores
 
@@ -86,7 +93,9 @@ def plot_steps(path: Path, result: ContinualResult) -> None:
     T = len(result.scenes)
     x = list(range(T + 1))
     series = [
-        Series(name, x, [100 * float(result.b[j])] + [100 * float(result.R[i, j]) for i in range(T)])
+        Series(
+            name, x, [100 * float(result.b[j])] + [100 * float(result.R[i, j]) for i in range(T)]
+        )
         for j, name in enumerate(result.scenes)
     ]
     mean = [100 * float(np.mean(result.b))] + [100 * float(np.mean(result.R[i])) for i in range(T)]

@@ -10,7 +10,9 @@ from pathlib import Path
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eval", help="score label maps (mIoU, pixel and class accuracy)")
     cmds = p.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
-    m = cmds.add_parser("miou", help="mIoU of a folder of predicted label maps against a ground-truth folder")
+    m = cmds.add_parser(
+        "miou", help="mIoU of a folder of predicted label maps against a ground-truth folder"
+    )
     m.add_argument("pred_dir", type=Path, help="predicted labels, <frame>.png uint8 NYU40 ids")
     m.add_argument("gt_dir", type=Path, help="ground truth, same file names (0 = ignored)")
     m.add_argument(

@@ -32,7 +32,10 @@ def register_plugins(sub: argparse._SubParsersAction) -> None:
         if added.get(ep.name) == ep.value:
             continue  # the same plugin seen twice (e.g. two copies of the metadata on the path)
         if ep.name in sub.choices:
-            print(f"csa: note: command {ep.name!r} from {ep.value} ignored: the name is taken", file=sys.stderr)
+            print(
+                f"csa: note: command {ep.name!r} from {ep.value} ignored: the name is taken",
+                file=sys.stderr,
+            )
             continue
         try:
             register = ep.load()
@@ -44,9 +47,13 @@ def register_plugins(sub: argparse._SubParsersAction) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="csa", description="Continual semantic adaptation through neural rendering.")
+    parser = argparse.ArgumentParser(
+        prog="csa", description="Continual semantic adaptation through neural rendering."
+    )
     parser.add_argument("--version", action="version", version=f"csa {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging and full tracebacks")
+    parser.add_argument(
+        "-v", "--verbose", action="store_true", help="debug logging and full tracebacks"
+    )
     sub = parser.add_subparsers(dest="group", metavar="COMMAND", required=True)
     for name in GROUPS:
         importlib.import_module(f"csa_core.cli.{name}").register(sub)
@@ -57,7 +64,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
     try:
         return int(args.func(args) or 0)
     except CSAInputError as e:

@@ -27,7 +27,10 @@ def add_nerf_commands(sub: argparse._SubParsersAction) -> None:
     f.add_argument(
         "--labels",
         default="label-nyu40",
-        help="label folder to fuse (e.g. label-nyu40 or predictions); 'none' for colour and depth only",
+        help=(
+            "label folder to fuse (e.g. label-nyu40 or predictions); 'none' for colour and depth "
+            "only"
+        ),
     )
     f.add_argument(
         "--out", type=Path, required=True, help="checkpoint file to write (.safetensors)"
@@ -141,9 +144,7 @@ def _fit(args: argparse.Namespace) -> int:
     scene = read_scene(
         args.scene, size=args.size, labels=[labels] if labels else [], every=args.every
     )
-    nerf, stats = fit_semantic_nerf(
-        scene, labels, cfg, device=args.device, progress=not args.quiet
-    )
+    nerf, stats = fit_semantic_nerf(scene, labels, cfg, device=args.device, progress=not args.quiet)
     size = save_checkpoint(nerf, args.out)
     print(
         f"{args.out}: {size / 1e6:.2f} MB, {stats.steps} steps in {stats.seconds:.1f} s "
@@ -155,7 +156,12 @@ def _fit(args: argparse.Namespace) -> int:
 # Keys (prefixes) of a NeRF config that only decide how a fitted model renders: the one
 # override path (csa_core.overrides) may change them on a loaded checkpoint; everything else
 # describes the fitted weights and is set at ``csa nerf fit``.
-RENDER_KEYS = ("sampler.render", "sampler.max_render_samples", "render_unseen_unknown", "render_chunk")
+RENDER_KEYS = (
+    "sampler.render",
+    "sampler.max_render_samples",
+    "render_unseen_unknown",
+    "render_chunk",
+)
 
 
 def _render(args: argparse.Namespace) -> int:

@@ -52,7 +52,9 @@ class Intrinsics:
     def from_matrix(cls, K: np.ndarray, width: int, height: int) -> Intrinsics:
         """Build from a 3x3 or 4x4 (ScanNet) intrinsic matrix."""
         K = np.asarray(K, dtype=np.float64)
-        return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
+        return cls(
+            float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height)
+        )
 
     def matrix(self) -> np.ndarray:
         """The 3x3 intrinsic matrix."""
@@ -75,11 +77,25 @@ class Intrinsics:
         )
 
     def to_dict(self) -> dict:
-        return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "width": self.width, "height": self.height}
+        return {
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+            "width": self.width,
+            "height": self.height,
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> Intrinsics:
-        return cls(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
+        return cls(
+            float(d["fx"]),
+            float(d["fy"]),
+            float(d["cx"]),
+            float(d["cy"]),
+            int(d["width"]),
+            int(d["height"]),
+        )
 
 
 def check_pose(pose: np.ndarray, where: str | Path) -> np.ndarray:
@@ -89,7 +105,9 @@ def check_pose(pose: np.ndarray, where: str | Path) -> np.ndarray:
     :data:`MAX_TRANSLATION_M`. The one check of poses for the scene reader and the server."""
     m = np.asarray(pose, dtype=np.float64)
     if m.shape != (4, 4):
-        raise CSAInputError(where, f"pose must be a 4x4 matrix, got shape {'x'.join(map(str, m.shape))}")
+        raise CSAInputError(
+            where, f"pose must be a 4x4 matrix, got shape {'x'.join(map(str, m.shape))}"
+        )
     if not np.all(np.isfinite(m)):
         raise CSAInputError(where, "pose is not finite")
     if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > RIGID_TOLERANCE:
@@ -99,14 +117,19 @@ def check_pose(pose: np.ndarray, where: str | Path) -> np.ndarray:
         deviation = float(np.abs(R.T @ R - np.eye(3)).max())
     if not deviation <= RIGID_TOLERANCE:
         raise CSAInputError(
-            where, f"rotation part is not orthonormal (max |RᵀR - I| = {deviation:.3g} > {RIGID_TOLERANCE:g}): a pose must be a rigid transform, without scale or shear"
+            where,
+            f"rotation part is not orthonormal (max |RᵀR - I| = {deviation:.3g} > "
+            f"{RIGID_TOLERANCE:g}): a pose must be a rigid transform, without scale or shear",
         )
     if np.linalg.det(R) < 0:
         raise CSAInputError(where, "rotation part has determinant -1: a reflection, not a rotation")
     largest = float(np.abs(t).max())
     distance = largest * float(np.linalg.norm(t / largest)) if largest > 0 else 0.0  # no overflow
     if distance > MAX_TRANSLATION_M:
-        raise CSAInputError(where, f"translation is {distance:.3g} m from the origin, more than {MAX_TRANSLATION_M:g} m")
+        raise CSAInputError(
+            where,
+            f"translation is {distance:.3g} m from the origin, more than {MAX_TRANSLATION_M:g} m",
+        )
     return m
 
 
@@ -117,7 +140,9 @@ def check_intrinsics(intr: Intrinsics, where: str | Path) -> Intrinsics:
     :data:`PRINCIPAL_POINT_MARGIN` image sizes of the image."""
     w, h = intr.width, intr.height
     if not (1 <= w <= MAX_SIZE_PX and 1 <= h <= MAX_SIZE_PX):
-        raise CSAInputError(where, f"image size {w}x{h} is outside 1..{MAX_SIZE_PX} pixels per side")
+        raise CSAInputError(
+            where, f"image size {w}x{h} is outside 1..{MAX_SIZE_PX} pixels per side"
+        )
     values = {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy}
     for name, v in values.items():
         if not np.isfinite(v):
@@ -127,11 +152,18 @@ def check_intrinsics(intr: Intrinsics, where: str | Path) -> Intrinsics:
         if f <= 0:
             raise CSAInputError(where, f"focal lengths must be positive, {name} is {f:g}")
         if not lo * side <= f <= hi * side:
-            raise CSAInputError(where, f"{name} = {f:g} px is not within {lo:g}..{hi:g} times the image size ({side} px)")
+            raise CSAInputError(
+                where,
+                f"{name} = {f:g} px is not within {lo:g}..{hi:g} times the image size ({side} px)",
+            )
     m = PRINCIPAL_POINT_MARGIN
     for name, c, side in (("cx", intr.cx, w), ("cy", intr.cy, h)):
         if not -m * side <= c <= (1 + m) * side:
-            raise CSAInputError(where, f"principal point {name} = {c:g} px lies more than {m:g} image sizes outside the {side}-pixel image")
+            raise CSAInputError(
+                where,
+                f"principal point {name} = {c:g} px lies more than {m:g} image sizes outside the "
+                f"{side}-pixel image",
+            )
     return intr
 
 
@@ -157,26 +189,47 @@ def intrinsics_from_matrix(K: np.ndarray, width: int, height: int, where: str | 
     one reader of intrinsic matrices for the scene reader and the server."""
     m = np.asarray(K, dtype=np.float64)
     if m.shape not in ((3, 3), (4, 4)):
-        raise CSAInputError(where, f"intrinsics must be a 3x3 or 4x4 matrix, got shape {'x'.join(map(str, m.shape))}")
+        raise CSAInputError(
+            where,
+            f"intrinsics must be a 3x3 or 4x4 matrix, got shape {'x'.join(map(str, m.shape))}",
+        )
     intr = check_intrinsics(Intrinsics.from_matrix(m, width, height), where)
     if not np.all(np.isfinite(m)):
         raise CSAInputError(where, "intrinsic matrix is not finite")
     tol = PINHOLE_TOLERANCE
     if not np.abs(m[2, :3] - (0.0, 0.0, 1.0)).max() <= tol:
-        raise CSAInputError(where, f"not a pinhole intrinsic matrix: its third row must be 0 0 1, got {' '.join(f'{v:g}' for v in m[2, :3])}")
+        raise CSAInputError(
+            where,
+            "not a pinhole intrinsic matrix: its third row must be 0 0 1, got "
+            f"{' '.join(f'{v:g}' for v in m[2, :3])}",
+        )
     if not abs(m[1, 0]) <= tol * max(1.0, intr.fy):
-        raise CSAInputError(where, f"not a pinhole intrinsic matrix: the cell below fx must be 0, got {m[1, 0]:g}")
+        raise CSAInputError(
+            where, f"not a pinhole intrinsic matrix: the cell below fx must be 0, got {m[1, 0]:g}"
+        )
     if not abs(m[0, 1]) <= 1e3 * tol * intr.fx:
-        raise CSAInputError(where, f"skew {m[0, 1]:g} is not supported: the camera model is a pinhole without skew (the cell right of fx must be 0)")
-    if m.shape == (4, 4) and not (np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() <= tol and np.abs(m[:3, 3]).max() <= tol):
-        raise CSAInputError(where, "not a pinhole intrinsic matrix: the fourth row and column of a 4x4 matrix must be those of the identity (0 0 0 1)")
+        raise CSAInputError(
+            where,
+            f"skew {m[0, 1]:g} is not supported: the camera model is a pinhole without skew "
+            "(the cell right of fx must be 0)",
+        )
+    if m.shape == (4, 4) and not (
+        np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() <= tol and np.abs(m[:3, 3]).max() <= tol
+    ):
+        raise CSAInputError(
+            where,
+            "not a pinhole intrinsic matrix: the fourth row and column of a 4x4 matrix must be "
+            "those of the identity (0 0 0 1)",
+        )
     for name, c, side in (("cx", intr.cx, intr.width), ("cy", intr.cy, intr.height)):
         centre = (side - 1) / 2
         if abs(c - centre) > max(CAPTURE_CENTRE_OFFSET * side, 1.0):
             raise CSAInputError(
                 where,
-                f"principal point {name} = {c:g} px is far from the centre ({centre:g}) of the {intr.width}x{intr.height} image: "
-                "are these the intrinsics of another image size? (they must match the images as stored)",
+                f"principal point {name} = {c:g} px is far from the centre ({centre:g}) "
+                f"of the {intr.width}x{intr.height} image: "
+                "are these the intrinsics of another image size? "
+                "(they must match the images as stored)",
             )
     return intr
 
@@ -216,11 +269,15 @@ def backproject(depth: np.ndarray, intr: Intrinsics, pose: np.ndarray) -> np.nda
     return pts
 
 
-def project(points: np.ndarray, intr: Intrinsics, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def project(
+    points: np.ndarray, intr: Intrinsics, pose: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Project world points (..., 3) into a camera: pixel coordinates (..., 2) and z-depth (...)."""
     w2c = np.linalg.inv(pose)
     p = points @ w2c[:3, :3].T + w2c[:3, 3]
     z = p[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        uv = np.stack([p[..., 0] / z * intr.fx + intr.cx, p[..., 1] / z * intr.fy + intr.cy], axis=-1)
+        uv = np.stack(
+            [p[..., 0] / z * intr.fx + intr.cx, p[..., 1] / z * intr.fy + intr.cy], axis=-1
+        )
     return uv, z

@@ -47,7 +47,11 @@ def read_depth_mm(path: Path) -> np.ndarray:
     :data:`DEPTH_INVALID_MM`)."""
     img = _imread(path, cv2.IMREAD_UNCHANGED)
     if img.dtype != np.uint16 or img.ndim != 2:
-        raise CSAInputError(path, f"depth must be a single-channel uint16 PNG in millimetres, got {img.dtype} with shape {img.shape}")
+        raise CSAInputError(
+            path,
+            f"depth must be a single-channel uint16 PNG in millimetres, got {img.dtype} with shape "
+            f"{img.shape}",
+        )
     img[img == DEPTH_INVALID_MM] = 0
     return img
 
@@ -56,7 +60,11 @@ def read_label_image(path: Path, max_id: int | None = 40) -> np.ndarray:
     """A single-channel label image (uint8 or uint16); ids above ``max_id`` are an error."""
     img = _imread(path, cv2.IMREAD_UNCHANGED)
     if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
-        raise CSAInputError(path, f"labels must be a single-channel uint8/uint16 PNG, got {img.dtype} with shape {img.shape}")
+        raise CSAInputError(
+            path,
+            f"labels must be a single-channel uint8/uint16 PNG, got {img.dtype} with shape "
+            f"{img.shape}",
+        )
     if max_id is not None:
         top = int(img.max()) if img.size else 0
         if top > max_id:
@@ -91,7 +99,11 @@ def _encode(path: Path, img: np.ndarray, params: list[int] | None = None) -> Non
 
 
 def write_color(path: Path, rgb: np.ndarray, jpeg_quality: int = 95) -> None:
-    params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if path.suffix.lower() in (".jpg", ".jpeg") else None
+    params = (
+        [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]
+        if path.suffix.lower() in (".jpg", ".jpeg")
+        else None
+    )
     _encode(path, cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR), params)
 
 

@@ -20,7 +20,12 @@ def resample_nearest(img: np.ndarray, src: Intrinsics, dst: Intrinsics) -> np.nd
     if np.allclose(M, [[1, 0, 0], [0, 1, 0]]) and img.shape[:2] == (dst.height, dst.width):
         return img
     return cv2.warpAffine(
-        img, M, (dst.width, dst.height), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        img,
+        M,
+        (dst.width, dst.height),
+        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
     )
 
 
@@ -29,4 +34,6 @@ def resize_color(img: np.ndarray, width: int, height: int) -> np.ndarray:
     if img.shape[1] == width and img.shape[0] == height:
         return img
     shrink = width < img.shape[1] and height < img.shape[0]
-    return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    return cv2.resize(
+        img, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+    )

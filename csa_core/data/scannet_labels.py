@@ -1,4 +1,5 @@
-"""Mapping raw ScanNet label ids (``label-filt``) to NYU40 with ``scannetv2-labels.combined.tsv``."""
+"""Mapping raw ScanNet label ids (``label-filt``) to NYU40 with
+``scannetv2-labels.combined.tsv``."""
 
 from __future__ import annotations
 
@@ -23,12 +24,16 @@ def load_raw_to_nyu40(tsv: str | Path) -> np.ndarray:
         reader = csv.DictReader(fh, delimiter="\t")
         missing = {"id", "nyu40id"} - set(reader.fieldnames or [])
         if missing:
-            raise CSAInputError(tsv, f"missing column(s) {', '.join(sorted(missing))} (need 'id' and 'nyu40id')")
+            raise CSAInputError(
+                tsv, f"missing column(s) {', '.join(sorted(missing))} (need 'id' and 'nyu40id')"
+            )
         for line_no, row in enumerate(reader, start=2):
             try:
                 raw, nyu = int(row["id"]), int(row["nyu40id"] or 0)
             except (TypeError, ValueError):
-                raise CSAInputError(tsv, f"line {line_no}: 'id' and 'nyu40id' must be integers") from None
+                raise CSAInputError(
+                    tsv, f"line {line_no}: 'id' and 'nyu40id' must be integers"
+                ) from None
             if not 0 <= nyu <= 40:
                 raise CSAInputError(tsv, f"line {line_no}: nyu40id {nyu} out of range 0..40")
             if not 0 <= raw <= 65535:

@@ -1,4 +1,5 @@
-"""Typed scenes and frames: the in-memory form of the scene folder (docs/data-contract.md, "The scene folder")."""
+"""Typed scenes and frames: the in-memory form of the scene folder
+(docs/data-contract.md, "The scene folder")."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import numpy as np
 from csa_core.data.camera import Intrinsics
 from csa_core.errors import CSAInputError
 
-# docs/method.md "Protocols and metrics": the first 80% of the kept frames are training views, the rest validation.
+# docs/method.md "Protocols and metrics": the first 80% of the kept frames are training views, the
+# rest validation.
 TRAIN_FRACTION = 0.8
 
 NYU40_FOLDER = "label-nyu40"
@@ -119,7 +121,8 @@ def require_depth(scene: Scene, needs: str) -> str:
 
 
 def split_point(n: int) -> int:
-    """Number of training frames among ``n`` kept frames (first 80%, at least one each side when n >= 2)."""
+    """Number of training frames among ``n`` kept frames (first 80%, at least one each side
+    when n >= 2)."""
     if n <= 1:
         return n
     return min(max(int(round(TRAIN_FRACTION * n)), 1), n - 1)
@@ -138,11 +141,21 @@ def check_depth(frames: Sequence[Frame], where: str | Path) -> None:
         d = np.asarray(f.depth)
         if d.shape != f.color.shape[:2]:
             got = "x".join(map(str, d.shape[::-1]))
-            raise CSAInputError(where, f"frame {f.name}: depth is {got}, colour is {f.color.shape[1]}x{f.color.shape[0]}")
+            raise CSAInputError(
+                where,
+                f"frame {f.name}: depth is {got}, colour is {f.color.shape[1]}x{f.color.shape[0]}",
+            )
         if not np.all(np.isfinite(d)):
-            raise CSAInputError(where, f"frame {f.name}: depth holds NaN or infinite values (use 0 where nothing was measured)")
+            raise CSAInputError(
+                where,
+                f"frame {f.name}: depth holds NaN or infinite values "
+                "(use 0 where nothing was measured)",
+            )
         if (d < 0).any():
-            raise CSAInputError(where, f"frame {f.name}: depth holds negative values (use 0 where nothing was measured)")
+            raise CSAInputError(
+                where,
+                f"frame {f.name}: depth holds negative values (use 0 where nothing was measured)",
+            )
         measured = d[d > 0]
         if measured.size:
             medians.append(float(np.median(measured)))
@@ -152,6 +165,7 @@ def check_depth(frames: Sequence[Frame], where: str | Path) -> None:
         if not lo <= typical <= hi:
             raise CSAInputError(
                 where,
-                f"typical measured depth is {typical:.3g} m, outside {lo:g}..{hi:g} m: depth in another unit? "
+                f"typical measured depth is {typical:.3g} m, outside {lo:g}..{hi:g} m: "
+                "depth in another unit? "
                 "(depth PNGs hold millimetres, 1 m = 1000; depth in memory is in metres)",
             )

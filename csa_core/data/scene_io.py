@@ -1,4 +1,5 @@
-"""Reader and writer of the scene folder (ScanNet export layout, see docs/data-contract.md "The scene folder")."""
+"""Reader and writer of the scene folder (ScanNet export layout, see
+docs/data-contract.md "The scene folder")."""
 
 from __future__ import annotations
 
@@ -39,7 +40,9 @@ def frame_names(folder: Path, exts: tuple[str, ...] = imf.COLOR_EXTS) -> list[st
         if p.suffix.lower() not in exts or p.name.startswith("."):
             continue
         if p.stem in found:
-            raise CSAInputError(p, f"frame {p.stem!r} has two images ({found[p.stem]} and {p.name}); keep one")
+            raise CSAInputError(
+                p, f"frame {p.stem!r} has two images ({found[p.stem]} and {p.name}); keep one"
+            )
         found[p.stem] = p.name
     return sorted(found, key=lambda s: (0, int(s), s) if s.isdigit() else (1, 0, s))
 
@@ -55,15 +58,25 @@ def _find_image(folder: Path, name: str, exts: Iterable[str] = (".png",)) -> Pat
             if p.is_file():
                 return p
     want = folder / f"{name}{exts[0]}"
-    others = sorted(p.name for p in folder.glob(f"{glob.escape(name)}.*")) if folder.is_dir() else []
+    others = (
+        sorted(p.name for p in folder.glob(f"{glob.escape(name)}.*")) if folder.is_dir() else []
+    )
     if others:
-        raise CSAInputError(want, f"file not found ({others[0]} is there, but this folder's images must be {'/'.join(exts)})")
+        raise CSAInputError(
+            want,
+            f"file not found ({others[0]} is there, but this folder's images must be "
+            f"{'/'.join(exts)})",
+        )
     return want
 
 
 def label_folders_of(root: Path) -> list[str]:
     """Names of the label folders in a scene folder (every non-reserved sub-folder)."""
-    return sorted(p.name for p in root.iterdir() if p.is_dir() and p.name not in RESERVED_FOLDERS and not p.name.startswith("."))
+    return sorted(
+        p.name
+        for p in root.iterdir()
+        if p.is_dir() and p.name not in RESERVED_FOLDERS and not p.name.startswith(".")
+    )
 
 
 def _read_intrinsics(root: Path, which: str, width: int, height: int) -> Intrinsics:
@@ -73,7 +86,11 @@ def _read_intrinsics(root: Path, which: str, width: int, height: int) -> Intrins
 
 def _check_size(path: Path, img: np.ndarray, want: tuple[int, int], what: str) -> None:
     if (img.shape[1], img.shape[0]) != want:
-        raise CSAInputError(path, f"size mismatch: {what} is {img.shape[1]}x{img.shape[0]}, expected {want[0]}x{want[1]} like the other {what} images")
+        raise CSAInputError(
+            path,
+            f"size mismatch: {what} is {img.shape[1]}x{img.shape[0]}, expected {want[0]}x{want[1]} "
+            f"like the other {what} images",
+        )
 
 
 def _read_pose(path: Path) -> np.ndarray:
@@ -95,9 +112,16 @@ def _resolve_labels(root: Path, labels: LabelSpec, label_map: Path | None) -> li
         labels = [labels]
     for name in labels:
         if name not in present:
-            raise CSAInputError(root / name, f"unknown label folder '{name}' (this scene has: {', '.join(present) or 'none'})")
+            raise CSAInputError(
+                root / name,
+                f"unknown label folder '{name}' (this scene has: {', '.join(present) or 'none'})",
+            )
         if name == RAW_SCANNET_FOLDER and label_map is None:
-            raise CSAInputError(root / name, "holds raw ScanNet ids; pass the scannetv2-labels.combined.tsv label map to read it")
+            raise CSAInputError(
+                root / name,
+                "holds raw ScanNet ids; "
+                "pass the scannetv2-labels.combined.tsv label map to read it",
+            )
     return list(labels)
 
 
@@ -133,7 +157,11 @@ def read_scene(
         raise CSAInputError(color_dir, "no colour images (.jpg/.png)")
     names = names[::every]
     folders = _resolve_labels(root, labels, Path(label_map) if label_map is not None else None)
-    lut = load_raw_to_nyu40(label_map) if label_map is not None and RAW_SCANNET_FOLDER in folders else None
+    lut = (
+        load_raw_to_nyu40(label_map)
+        if label_map is not None and RAW_SCANNET_FOLDER in folders
+        else None
+    )
     has_depth = depth_dir.is_dir()
 
     first = imf.read_color(_find_image(color_dir, names[0], imf.COLOR_EXTS))
@@ -175,7 +203,9 @@ def read_scene(
             lab = imf.read_label_image(lpath, max_id=None if raw else 40)
             if raw:
                 lab = lut[lab.astype(np.int64)]
-            lab_cam = _colour_camera_at(lpath, (lab.shape[1], lab.shape[0]), color_cam, "labels are")
+            lab_cam = _colour_camera_at(
+                lpath, (lab.shape[1], lab.shape[0]), color_cam, "labels are"
+            )
             key = NYU40_FOLDER if raw and NYU40_FOLDER not in folders else folder
             frame.labels[key] = resample_nearest(lab, lab_cam, work)
         return frame
@@ -193,12 +223,18 @@ def read_scene(
     return Scene(name=root.name, intrinsics=work, frames=frames, skipped=skipped, root=root)
 
 
-def _colour_camera_at(path: Path, size: tuple[int, int], color_cam: Intrinsics, what: str, hint: str = "") -> Intrinsics:
+def _colour_camera_at(
+    path: Path, size: tuple[int, int], color_cam: Intrinsics, what: str, hint: str = ""
+) -> Intrinsics:
     """The colour camera at another resolution ``size`` of the same aspect (within 1%): the camera
     of labels, and of depth without ``intrinsic_depth.txt``; ``what`` names the image in errors."""
     w, h = size
     if abs(w / h - color_cam.width / color_cam.height) > 0.01:
-        raise CSAInputError(path, f"size mismatch: {what} {w}x{h}, colour is {color_cam.width}x{color_cam.height} (aspect ratios differ{hint})")
+        raise CSAInputError(
+            path,
+            f"size mismatch: {what} {w}x{h}, colour is {color_cam.width}x{color_cam.height} "
+            f"(aspect ratios differ{hint})",
+        )
     return color_cam.scaled(w, h)
 
 
@@ -207,10 +243,15 @@ def read_label_folder(folder: str | Path) -> dict[str, np.ndarray]:
     folder = Path(folder)
     if not folder.is_dir():
         raise CSAInputError(folder, "label folder not found")
-    return {name: imf.read_label_image(folder / f"{name}.png") for name in frame_names(folder, (".png",))}
+    return {
+        name: imf.read_label_image(folder / f"{name}.png")
+        for name in frame_names(folder, (".png",))
+    }
 
 
-def write_label_folder(dest: str | Path, labels: dict[str, np.ndarray], overwrite: bool = False) -> Path:
+def write_label_folder(
+    dest: str | Path, labels: dict[str, np.ndarray], overwrite: bool = False
+) -> Path:
     """Write ``{frame name: label map}`` as a label folder (uint8 PNGs), atomically."""
     dest = Path(dest)
     with atomic_dir(dest, overwrite=overwrite) as tmp:
@@ -219,7 +260,9 @@ def write_label_folder(dest: str | Path, labels: dict[str, np.ndarray], overwrit
     return dest
 
 
-def write_scene(scene: Scene, dest: str | Path, overwrite: bool = False, color_ext: str = ".png") -> Path:
+def write_scene(
+    scene: Scene, dest: str | Path, overwrite: bool = False, color_ext: str = ".png"
+) -> Path:
     """Write a scene in the scene-folder layout, atomically (all or nothing).
 
     Colour defaults to lossless PNG; depth is stored as uint16 millimetres (0 = missing);
@@ -239,7 +282,11 @@ def write_scene(scene: Scene, dest: str | Path, overwrite: bool = False, color_e
             imf.write_matrix(tmp / "intrinsic" / "intrinsic_depth.txt", K)
         for f in scene.frames:
             if (f.color.shape[1], f.color.shape[0]) != scene.size:
-                raise CSAInputError(f"frame {f.name}", f"colour is {f.color.shape[1]}x{f.color.shape[0]}, scene is {scene.size[0]}x{scene.size[1]}")
+                raise CSAInputError(
+                    f"frame {f.name}",
+                    f"colour is {f.color.shape[1]}x{f.color.shape[0]}, scene is "
+                    f"{scene.size[0]}x{scene.size[1]}",
+                )
             imf.write_color(tmp / "color" / f"{f.name}{color_ext}", f.color)
             imf.write_matrix(tmp / "pose" / f"{f.name}.txt", f.pose)
             if f.depth is not None:

@@ -55,7 +55,9 @@ def load_7scenes(
         raise CSAInputError("--camera", f"must be one of {', '.join(CAMERAS)}, got {camera!r}")
     found = sorted((int(m.group(1)), p) for p in src.iterdir() if (m := FRAME_RE.match(p.name)))
     if not found:
-        raise CSAInputError(src, "no frame-XXXXXX.color.jpg files (is this a 7-Scenes sequence folder?)")
+        raise CSAInputError(
+            src, "no frame-XXXXXX.color.jpg files (is this a 7-Scenes sequence folder?)"
+        )
     found = found[::every]
     first = imf.read_color(found[0][1])
     color_size = (first.shape[1], first.shape[0])
@@ -63,7 +65,9 @@ def load_7scenes(
     if k_path.is_file():
         cam = Intrinsics.from_matrix(imf.read_matrix(k_path, ((3, 3), (4, 4))), *color_size)
     else:
-        cam = Intrinsics(DEFAULT_FOCAL, DEFAULT_FOCAL, color_size[0] / 2, color_size[1] / 2, *color_size)
+        cam = Intrinsics(
+            DEFAULT_FOCAL, DEFAULT_FOCAL, color_size[0] / 2, color_size[1] / 2, *color_size
+        )
     full = color_camera.at_size(*color_size) if camera == "color" else cam
     work = full.scaled(*size) if size is not None else full
 
@@ -80,7 +84,11 @@ def load_7scenes(
             pose = color_pose(pose, color_camera)
         color = imf.read_color(cpath)
         if (color.shape[1], color.shape[0]) != color_size:
-            raise CSAInputError(cpath, f"size mismatch: {color.shape[1]}x{color.shape[0]}, expected {color_size[0]}x{color_size[1]}")
+            raise CSAInputError(
+                cpath,
+                f"size mismatch: {color.shape[1]}x{color.shape[0]}, expected "
+                f"{color_size[0]}x{color_size[1]}",
+            )
         frame = Frame(name=str(idx), color=resize_color(color, work.width, work.height), pose=pose)
         dpath = src / f"{stem}.depth.png"
         if not dpath.is_file():

@@ -57,8 +57,9 @@ them is rewarded for multi-view consistency on real geometry and real depth nois
 recognising objects. Region boundaries are spheres and planes through free space, smooth and
 often far from depth edges, so they are easier to fuse than real object boundaries, and
 there is no class that a network would confuse with another. Walls and floor swallow what lies
-flush on them (doors, pictures, windows, floor mats). The labelling depends on the frames it is built from (their
-number and working resolution change the fused cells a little, so the labels move a little).
+flush on them (doors, pictures, windows, floor mats). The labelling depends on the frames it is
+built from (their number and working resolution change the fused cells a little, so the labels move
+a little).
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 """Hash-grid Semantic-NeRF: fuse per-frame labels in 3D, render labels, images and depth, and
-store each scene compactly for the memory bank (docs/method.md "Fuse in 3D", "Render pseudo-labels", "Remember").
+store each scene compactly for the memory bank
+(docs/method.md "Fuse in 3D", "Render pseudo-labels", "Remember").
 
 Typical use::
 

@@ -35,7 +35,8 @@ _OBSERVED_KEY = "observed_bits"  # visibility.py; absent when no training view h
 
 
 def checkpoint_bytes(nerf: SemanticNerf, dtype: str | None = None) -> bytes:
-    """Serialise ``nerf``; ``dtype`` (``float32``/``float16``) defaults to the config's storage dtype."""
+    """Serialise ``nerf``; ``dtype`` (``float32``/``float16``) defaults to the config's storage
+    dtype."""
     dtype = dtype or nerf.config.storage_dtype
     if dtype not in ("float32", "float16"):
         raise ValueError(f"checkpoint dtype must be float32 or float16, got {dtype!r}")
@@ -74,7 +75,8 @@ def save_checkpoint(nerf: SemanticNerf, path: str | Path, dtype: str | None = No
 
 
 def load_checkpoint(path: str | Path, device: str | torch.device | None = "cpu") -> SemanticNerf:
-    """Read a checkpoint written by :func:`save_checkpoint`; any damage raises :class:`CSAInputError` naming the file."""
+    """Read a checkpoint written by :func:`save_checkpoint`; any damage raises
+    :class:`CSAInputError` naming the file."""
     from csa_core.device import resolve_device
 
     path = Path(path)
@@ -170,7 +172,8 @@ def _read_metadata(data: bytes) -> dict:
 
 
 def checkpoint_info(path: str | Path) -> dict:
-    """The checkpoint's metadata (config, box, scene, dtype) plus its size, without building the model."""
+    """The checkpoint's metadata (config, box, scene, dtype) plus its size, without building the
+    model."""
     path = Path(path)
     try:
         data = path.read_bytes()

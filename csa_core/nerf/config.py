@@ -66,7 +66,8 @@ class FieldConfig:
     # Ours: the semantic head also reads its own feature table, laid out like the first
     # ``semantic_grid_levels`` levels of the hash grid and interpolated with the same corners.
     # Only the semantic loss trains it, so geometry still gets no semantic gradient; the detached
-    # 15 geometry features alone could not fit even clean labels in our tests. 0 = paper (geometry features only).
+    # 15 geometry features alone could not fit even clean labels in our tests. 0 = paper (geometry
+    # features only).
     semantic_grid_levels: int = 12
     # Ours: the semantic head reads the geometry features detached as well, so the semantic
     # loss never reaches geometry (a test pins it). False = the official head: the features
@@ -84,6 +85,7 @@ class FieldConfig:
             raise ValueError(
                 f"field.mlp_dtype must be 'float32' or 'bfloat16', got {self.mlp_dtype!r}"
             )
+
     num_classes: int = NUM_CLASSES  # NYU40 ids 1..40 -> channels 0..39
 
 
@@ -154,7 +156,8 @@ class SamplerConfig:
     def __post_init__(self) -> None:
         if self.render_march_steps is not None and self.render_march_steps < 1:
             raise ValueError(
-                f"sampler.render_march_steps must be at least 1 (or none), got {self.render_march_steps}"
+                "sampler.render_march_steps must be at least 1 (or none), got "
+                f"{self.render_march_steps}"
             )
         for name in ("render_early_stop", "render_min_weight"):
             if not 0 <= getattr(self, name) < 1:
@@ -200,7 +203,8 @@ class LossConfig:
 class OptimConfig:
     """Adam and the ray batch."""
 
-    steps: int = 5000  # ~5 min at 0.06 s/step on an RTX 3090 (reported cost, docs/method.md "Reference numbers")
+    # ~5 min at 0.06 s/step on an RTX 3090 (reported cost, docs/method.md "Reference numbers")
+    steps: int = 5000
     rays_per_step: int = 4096  # docs/method.md "Reference numbers": 4096 rays per step
     lr: float = 1e-2  # docs/method.md "Reference numbers": Adam lr 1e-2
     betas: tuple[float, float] = (0.9, 0.99)  # docs/method.md "Reference numbers"
@@ -281,16 +285,15 @@ class NerfConfig:
 
     def __post_init__(self) -> None:
         if self.normalization not in ("box", "cube"):
-            raise ValueError(
-                f"normalization must be 'box' or 'cube', got {self.normalization!r}"
-            )
+            raise ValueError(f"normalization must be 'box' or 'cube', got {self.normalization!r}")
         for name in ("cube_bound", "cube_camera_distance"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0 < value < math.inf):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         if not (isinstance(self.observed_resolution, int) and 0 <= self.observed_resolution <= 512):
             raise ValueError(
-                f"observed_resolution must be an integer in [0, 512], got {self.observed_resolution!r}"
+                "observed_resolution must be an integer in [0, 512], got "
+                f"{self.observed_resolution!r}"
             )
 
     def to_dict(self) -> dict[str, Any]:
@@ -333,9 +336,10 @@ def _fast() -> NerfConfig:
     For label fusion: label-balanced ray draws (rare classes get their geometry and labels
     fitted within the budget) and then 300 semantic-head steps of 8192 rays at a tenth of the
     rate (about two thirds of a pass over every training pixel's label at 200 views of 160x120,
-    on the finished geometry). Measured against the voxel map on every synthetic family, clean and hard, and the real
-    7-Scenes kitchen: benchmarks/results/fusion.md "The `fast` preset for label fusion". The
-    adaptation budgets (``csa_core.adapt.config``) set their own draws and semantic steps."""
+    on the finished geometry). Measured against the voxel map on every synthetic family, clean and
+    hard, and the real 7-Scenes kitchen:
+    benchmarks/results/fusion.md "The `fast` preset for label fusion". The adaptation budgets
+    (``csa_core.adapt.config``) set their own draws and semantic steps."""
     return NerfConfig(
         preset="fast",
         field=FieldConfig(

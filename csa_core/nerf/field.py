@@ -42,7 +42,8 @@ def trunc_exp(x: Tensor) -> Tensor:
 
 
 def spherical_harmonics(dirs: Tensor, degree: int) -> Tensor:
-    """Real spherical harmonics basis of unit directions ``(N, 3)`` -> ``(N, degree^2)``; degree 1..4."""
+    """Real spherical harmonics basis of unit directions ``(N, 3)`` -> ``(N, degree^2)``; degree
+    1..4."""
     if not 1 <= degree <= 4:
         raise ValueError(f"spherical_harmonics: degree must be 1..4, got {degree}")
     x, y, z = dirs.unbind(-1)
@@ -144,7 +145,8 @@ class SemanticField(nn.Module):
         return self._run(self.semantic_mlp, sem_in)
 
     def density(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """Density ``(N,)`` (per metre of world space) and geometry features ``(N, geo)`` at ``x``."""
+        """Density ``(N,)`` (per metre of world space) and geometry features ``(N, geo)`` at
+        ``x``."""
         sigma, geo, _ = self.features(x, semantic_features=False)
         return sigma, geo
 

@@ -62,7 +62,8 @@ def check_fit_inputs(scene: Scene, label_folder: str | None, frames: Sequence[Fr
         if f.color.shape[:2] != size:
             raise CSAInputError(
                 where,
-                f"frame {f.name}: colour is {f.color.shape[1]}x{f.color.shape[0]}, scene is {size[1]}x{size[0]}",
+                f"frame {f.name}: colour is {f.color.shape[1]}x{f.color.shape[0]}, scene is "
+                f"{size[1]}x{size[0]}",
             )
         try:
             check_pose(f.pose, where)
@@ -113,7 +114,11 @@ def fit_semantic_nerf(
     check_fit_inputs(scene, label_folder, frames)
     n_steps = cfg.optim.steps if steps is None else int(steps)
     semantic_steps = scaled_semantic_steps(cfg.optim, steps)
-    if label_folder is not None and not cfg.optim.semantics_in_fit and cfg.optim.semantic_steps <= 0:
+    if (
+        label_folder is not None
+        and not cfg.optim.semantics_in_fit
+        and cfg.optim.semantic_steps <= 0
+    ):
         raise ValueError(
             "optim.semantics_in_fit=false leaves the semantic head untrained unless "
             "optim.semantic_steps > 0"

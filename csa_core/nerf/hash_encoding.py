@@ -73,7 +73,10 @@ class _HashGather(torch.autograd.Function):
         ctx.num_rows = table.shape[0]
         levels, n, _ = idx.shape
         out = F.embedding_bag(
-            idx.reshape(levels * n, 8), table, per_sample_weights=w.reshape(levels * n, 8), mode="sum"
+            idx.reshape(levels * n, 8),
+            table,
+            per_sample_weights=w.reshape(levels * n, 8),
+            mode="sum",
         )
         return out.view(levels, n, -1)
 
@@ -213,7 +216,9 @@ class HashEncoding(nn.Module):
 
     def kernel_layout(self) -> hash_kernel.LevelLayout:
         """This encoding's level layout as the C kernel reads it (its own int32 buffers)."""
-        return hash_kernel.LevelLayout(self._res_int, self._offsets, self._num_dense, self._hash_mask)
+        return hash_kernel.LevelLayout(
+            self._res_int, self._offsets, self._num_dense, self._hash_mask
+        )
 
     def forward(
         self,

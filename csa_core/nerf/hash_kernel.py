@@ -179,7 +179,8 @@ def library() -> ctypes.CDLL | None:
             except (OSError, RuntimeError, subprocess.SubprocessError) as e:
                 detail = getattr(e, "stderr", b"") or b""
                 log.warning(
-                    "the C hash-encoding kernel is unavailable, the encoding runs in PyTorch: %s %s",
+                    "the C hash-encoding kernel is unavailable, "
+                    "the encoding runs in PyTorch: %s %s",
                     e,
                     detail.decode(errors="replace")[:500],
                 )

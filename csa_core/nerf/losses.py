@@ -65,7 +65,8 @@ NEAR_DEPTH = 0.3  # metres: ``near_view_weight`` stops growing below this depth
 
 def near_view_weight(depth: Tensor, power: float, reference: float) -> Tensor:
     """Per-ray weight ``(reference / z) ** power`` of the semantic loss, ``z`` the measured depth
-    (at least ``NEAR_DEPTH``); rays without depth (0) weigh 1 (``LossConfig.semantic_depth_power``)."""
+    (at least ``NEAR_DEPTH``); rays without depth (0) weigh 1
+    (``LossConfig.semantic_depth_power``)."""
     z = depth.clamp_min(NEAR_DEPTH)
     w = (reference / z) ** power
     return torch.where(depth > 0, w, torch.ones_like(w))

@@ -488,7 +488,8 @@ class SemanticNerf(nn.Module):
         self, decay: float = 0.0, passes: int = 2, generator: torch.Generator | None = None
     ) -> float:
         """Re-estimate the occupancy grid from the field (``decay=0``: from scratch), then empty the
-        cells that no training camera sees (the field is unconstrained there); returns the occupied fraction."""
+        cells that no training camera sees (the field is unconstrained there); returns the occupied
+        fraction."""
         for i in range(passes):
             self.grid.update(
                 self.box, self.density_fn, decay=decay if i == 0 else 1.0, generator=generator
@@ -532,7 +533,8 @@ CUDA_RENDER_CHUNK = 2**15
 
 
 def render_chunk(configured: int, device: torch.device) -> int:
-    """Rays per rendering chunk on ``device``: the config's, raised to ``CUDA_RENDER_CHUNK`` on CUDA."""
+    """Rays per rendering chunk on ``device``: the config's, raised to ``CUDA_RENDER_CHUNK`` on
+    CUDA."""
     return max(configured, CUDA_RENDER_CHUNK) if device.type == "cuda" else configured
 
 

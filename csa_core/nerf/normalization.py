@@ -1,12 +1,13 @@
 """Scene normalisation: the metric world box that the hash grid covers.
 
 Two placements (``NerfConfig.normalization``): ``box`` (ours), described here, and ``cube``
-(the paper's fixed cube, :func:`fixed_cube_box`). Callers always use metric world poses; the field sees ``(x - center) / extent + 0.5`` in the
-unit cube. The box is found from the camera centres and the measured depth (robust
-percentiles, so flying pixels do not inflate it, reaching at most three quarters of the size
-of the bulk of the points beyond it, so that a few percent of far outliers cannot either),
-padded by a margin, and made a cube so that the grid is isotropic. It is stored in every checkpoint. Ray parameters ``t`` stay metric
-z-depth along unit-z camera rays, so rendered depth needs no conversion.
+(the paper's fixed cube, :func:`fixed_cube_box`). Callers always use metric world poses; the field
+sees ``(x - center) / extent + 0.5`` in the unit cube. The box is found from the camera centres and
+the measured depth (robust percentiles, so flying pixels do not inflate it, reaching at most three
+quarters of the size of the bulk of the points beyond it, so that a few percent of far outliers
+cannot either), padded by a margin, and made a cube so that the grid is isotropic. It is stored in
+every checkpoint. Ray parameters ``t`` stay metric z-depth along unit-z camera rays, so rendered
+depth needs no conversion.
 """
 
 from __future__ import annotations
@@ -59,7 +60,8 @@ class SceneBox:
         return float(self.extent * np.sqrt(3.0))
 
     def ray_interval(self, origins: Tensor, dirs: Tensor, near: float) -> tuple[Tensor, Tensor]:
-        """``t`` where each ray enters (at least ``near``) and leaves the box; ``t_far <= t_near`` if it misses."""
+        """``t`` where each ray enters (at least ``near``) and leaves the box; ``t_far <= t_near``
+        if it misses."""
         lo = (
             torch.as_tensor(self.center, dtype=origins.dtype, device=origins.device)
             - 0.5 * self.extent
@@ -148,7 +150,9 @@ def attention_point(poses: np.ndarray) -> np.ndarray:
     # Closest points oa + ta * da and ob + tb * db (Cramer's rule), clamped in front.
     ta = (np.cross(t, db) * c).sum(-1) / (w + 1e-10)
     tb = (np.cross(t, da) * c).sum(-1) / (w + 1e-10)
-    mid = 0.5 * (oa + np.maximum(ta, 0.0)[..., None] * da + ob + np.maximum(tb, 0.0)[..., None] * db)
+    mid = 0.5 * (
+        oa + np.maximum(ta, 0.0)[..., None] * da + ob + np.maximum(tb, 0.0)[..., None] * db
+    )
     w = np.where(w > _MIN_AXIS_WEIGHT, w, 0.0)
     if w.sum() <= 0:
         return o.mean(axis=0)
@@ -190,9 +194,7 @@ def fixed_cube_box(
     return SceneBox((float(centre[0]), float(centre[1]), float(centre[2])), extent)
 
 
-def fitted_box(
-    frames: Sequence[Frame], intrinsics: Intrinsics, config: NerfConfig
-) -> SceneBox:
+def fitted_box(frames: Sequence[Frame], intrinsics: Intrinsics, config: NerfConfig) -> SceneBox:
     """The box a fit of ``config`` normalises ``frames`` into: the scene's box
     (:func:`scene_box_from_frames`) or the paper's fixed cube (:func:`fixed_cube_box`), as
     ``config.normalization`` says."""

@@ -105,7 +105,8 @@ def novel_view_poses(
 def view_poses(
     nerf: SemanticNerf, views: str = "train", scene: Scene | None = None
 ) -> list[tuple[str, np.ndarray]]:
-    """``(name, pose)`` of the requested views; ``train``/``novel`` fall back to the checkpoint's poses."""
+    """``(name, pose)`` of the requested views; ``train``/``novel`` fall back to the checkpoint's
+    poses."""
     if views not in VIEWS:
         raise CSAInputError("--views", f"unknown views {views!r} (choose from {', '.join(VIEWS)})")
     if views == "novel":
@@ -117,7 +118,8 @@ def view_poses(
         if views != "train":
             raise CSAInputError(
                 "--scene",
-                f"views '{views}' need the scene folder (the checkpoint stores training poses only)",
+                f"views '{views}' need the scene folder "
+                "(the checkpoint stores training poses only)",
             )
         return list(zip(nerf.info.train_frames, list(nerf.info.train_poses), strict=True))
     return [(f.name, np.asarray(f.pose)) for f in scene.split(views)]
@@ -134,8 +136,10 @@ def check_scene_matches(nerf: SemanticNerf, scene: Scene, where: str | Path) -> 
     ):
         raise CSAInputError(
             where,
-            f"its camera (fx {a.fx:g}, fy {a.fy:g}, cx {a.cx:g}, cy {a.cy:g} at {a.width}x{a.height}) is not the "
-            f"checkpoint's (fx {b.fx:g}, fy {b.fy:g}, cx {b.cx:g}, cy {b.cy:g}): a checkpoint of another scene?",
+            f"its camera (fx {a.fx:g}, fy {a.fy:g}, cx {a.cx:g}, cy {a.cy:g} "
+            f"at {a.width}x{a.height}) is not the "
+            f"checkpoint's (fx {b.fx:g}, fy {b.fy:g}, cx {b.cx:g}, cy {b.cy:g}): "
+            "a checkpoint of another scene?",
         )
     fitted = dict(zip(nerf.info.train_frames, nerf.info.train_poses, strict=True))
     common = [f for f in scene.frames if f.name in fitted]
@@ -253,9 +257,9 @@ def render_frames(
     unseen_unknown: bool | None = None,
 ) -> list[RenderedView]:
     """Render the ``(name, pose)`` cameras, the rays of several views per forward pass (about
-    ``rays_per_pass``; default 2^16 on a CPU, 2^18 on CUDA). ``depths``: each view's measured depth (or ``None``); views with depth
-    and views without are batched separately, as they use different samplers.
-    ``unseen_unknown``: see the module's description."""
+    ``rays_per_pass``; default 2^16 on a CPU, 2^18 on CUDA). ``depths``: each view's measured depth
+    (or ``None``); views with depth and views without are batched separately, as they use different
+    samplers. ``unseen_unknown``: see the module's description."""
     intr = intrinsics or nerf.info.intrinsics
     if unseen_unknown is None:
         unseen_unknown = nerf.config.render_unseen_unknown

@@ -16,7 +16,8 @@ from torch import Tensor
 
 @dataclass
 class RaySamples:
-    """Packed samples: ``ray_indices`` (S,) int64, ``t_starts`` / ``t_ends`` (S,) along unit-z rays."""
+    """Packed samples: ``ray_indices`` (S,) int64, ``t_starts`` / ``t_ends`` (S,) along unit-z
+    rays."""
 
     ray_indices: Tensor
     t_starts: Tensor
@@ -81,7 +82,8 @@ def render_weights(
 
     ``dl_i`` is the interval length in world units: ``(t_end - t_start) * ray_scale`` where
     ``ray_scale`` (num_rays,) is the norm of each ray's direction (unit-z rays are longer than
-    one unit per unit of ``t`` off the optical axis). Returns ``(weights, transmittance, alphas)``, each (S,).
+    one unit per unit of ``t`` off the optical axis). Returns ``(weights, transmittance, alphas)``,
+    each (S,).
     """
     dl = samples.t_ends - samples.t_starts
     if ray_scale is not None:

@@ -59,7 +59,8 @@ def _dense_samples(edges: Tensor) -> RaySamples:
 def _stratified_edges(
     t_near: Tensor, t_far: Tensor, n: int, stratified: bool, generator: torch.Generator | None
 ) -> Tensor:
-    """``n`` bins between ``t_near`` and ``t_far`` (R,); inner edges jittered when ``stratified``."""
+    """``n`` bins between ``t_near`` and ``t_far`` (R,); inner edges jittered when
+    ``stratified``."""
     u = torch.linspace(0.0, 1.0, n + 1, device=t_near.device)
     u = u.expand(t_near.shape[0], n + 1).clone()
     if stratified and n > 1:
@@ -84,7 +85,8 @@ def sample_uniform(
 def _sample_pdf(
     edges: Tensor, weights: Tensor, n: int, stratified: bool, generator: torch.Generator | None
 ) -> Tensor:
-    """Inverse-CDF samples ``(R, n)`` of the piecewise-constant density ``weights`` (R, K) on ``edges``."""
+    """Inverse-CDF samples ``(R, n)`` of the piecewise-constant density ``weights`` (R, K) on
+    ``edges``."""
     w = weights + 1e-5
     pdf = w / w.sum(dim=-1, keepdim=True)
     cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, dim=-1)], dim=-1).clamp_max(
@@ -252,7 +254,8 @@ class OccupancyGrid(nn.Module):
 
     @torch.no_grad()
     def mark_points(self, box: SceneBox, points: Tensor) -> None:
-        """Mark the cells containing world ``points`` (N, 3) as occupied (e.g. from measured depth)."""
+        """Mark the cells containing world ``points`` (N, 3) as occupied (e.g. from measured
+        depth)."""
         idx = self._cell_index(box.to_unit(points))
         ok = idx >= 0
         self.occupied.view(-1)[idx[ok]] = True
@@ -264,7 +267,8 @@ class OccupancyGrid(nn.Module):
     def keep_visible(
         self, box: SceneBox, visible_fn: Callable[[Tensor], Tensor], chunk: int = 65536
     ) -> None:
-        """Empty every cell whose centre ``visible_fn`` (world points -> bool) says no camera sees."""
+        """Empty every cell whose centre ``visible_fn`` (world points -> bool) says no camera
+        sees."""
         r = self.resolution
         occ = self.occupied.view(-1)
         cells = torch.nonzero(occ).squeeze(-1)
@@ -284,7 +288,8 @@ class OccupancyGrid(nn.Module):
         generator: torch.Generator | None = None,
         fraction: float = 1.0,
     ) -> None:
-        """Re-estimate cell densities at a jittered point per cell (a random ``fraction`` of cells)."""
+        """Re-estimate cell densities at a jittered point per cell (a random ``fraction`` of
+        cells)."""
         r = self.resolution
         n = r**3
         device = self.density_ema.device
@@ -357,7 +362,9 @@ class OccupancyGrid(nn.Module):
             if rays.numel() == 0:
                 break
             s1 = min(s0 + chunk_steps, n_steps)
-            t, pts, keep = self._march_chunk(box, origins, dirs, t_near, dt, offset, t_far, rays, s0, s1)
+            t, pts, keep = self._march_chunk(
+                box, origins, dirs, t_near, dt, offset, t_far, rays, s0, s1
+            )
             evaluated, features = (keep.clone() if density_fn is not None else keep), None
             if density_fn is not None and bool(keep.any()):
                 sigma_dt = torch.zeros_like(t)

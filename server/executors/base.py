@@ -114,7 +114,9 @@ class Executor:
 
     def start(self) -> None:
         """Run in a daemon thread of the API process."""
-        self._thread = threading.Thread(target=self.run_forever, name=f"csa-{self.mode}-{self.id}", daemon=True)
+        self._thread = threading.Thread(
+            target=self.run_forever, name=f"csa-{self.mode}-{self.id}", daemon=True
+        )
         self._thread.start()
 
     def stop(self, timeout: float = 30.0) -> None:
@@ -125,7 +127,9 @@ class Executor:
     def run_forever(self) -> None:
         self._register()
         self._beat_stop.clear()
-        self._beater = threading.Thread(target=self._heartbeat_loop, name=f"csa-heartbeat-{self.id}", daemon=True)
+        self._beater = threading.Thread(
+            target=self._heartbeat_loop, name=f"csa-heartbeat-{self.id}", daemon=True
+        )
         self._beater.start()
         try:
             self.open()
@@ -169,7 +173,11 @@ class Executor:
     def _register(self) -> None:
         queue.note_local_owner(self.id, True)
         with session_scope(self.services.sessions) as s:
-            s.add(WorkerRow(id=self.id, hostname=socket.gethostname(), pid=os.getpid(), mode=self.mode))
+            s.add(
+                WorkerRow(
+                    id=self.id, hostname=socket.gethostname(), pid=os.getpid(), mode=self.mode
+                )
+            )
         self.recover()  # jobs of a process that died (this API before a restart) go back first
         self._remove_stale_scratch()
         log.info("executor %s started (%s)", self.id, self.mode)
@@ -178,14 +186,22 @@ class Executor:
         queue.note_local_owner(self.id, False)
         try:
             with session_scope(self.services.sessions) as s:
-                s.execute(update(WorkerRow).where(WorkerRow.id == self.id).values(stopped_at=utcnow(), current_job_id=None))
+                s.execute(
+                    update(WorkerRow)
+                    .where(WorkerRow.id == self.id)
+                    .values(stopped_at=utcnow(), current_job_id=None)
+                )
         except Exception:  # noqa: BLE001
             log.exception("could not mark executor %s stopped", self.id)
         log.info("executor %s stopped", self.id)
 
     def _beat(self, job_id: int | None = None) -> None:
         with session_scope(self.services.sessions) as s:
-            s.execute(update(WorkerRow).where(WorkerRow.id == self.id).values(heartbeat_at=utcnow(), current_job_id=job_id))
+            s.execute(
+                update(WorkerRow)
+                .where(WorkerRow.id == self.id)
+                .values(heartbeat_at=utcnow(), current_job_id=job_id)
+            )
 
     def current_job(self) -> int | None:
         return None
@@ -194,7 +210,9 @@ class Executor:
         while not self._beat_stop.wait(self.settings.heartbeat_seconds):
             try:
                 since = time.monotonic()
-                owned, cancel = queue.renew_leases(self.services.sessions, self.id, self.settings.lease_seconds)
+                owned, cancel = queue.renew_leases(
+                    self.services.sessions, self.id, self.settings.lease_seconds
+                )
                 self._beat(self.current_job())
                 self.on_leases(owned, cancel, since)
             except Exception:  # noqa: BLE001 - try again at the next beat

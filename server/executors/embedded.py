@@ -94,7 +94,9 @@ class EmbeddedExecutor(Executor):
                 # Also when it was lost: if the database still gives it to this executor (the
                 # loss was only seen, not real), it must not stay running with nobody on it.
                 # A job another owner took is left alone (release_to_queue checks the owner).
-                queue.release_to_queue(self.services.sessions, job.id, self.id, error or "interrupted")
+                queue.release_to_queue(
+                    self.services.sessions, job.id, self.id, error or "interrupted"
+                )
                 log.warning("job %s interrupted: %s", job.id, error)
             elif status != queue.SUCCEEDED:
                 ctx.flush_logs()

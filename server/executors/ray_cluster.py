@@ -76,7 +76,9 @@ class JobChannel:
         self._cancel: set[str] = set()
         self._lost: set[str] = set()
 
-    def report(self, token: str, progress: float | None, message: str | None, logs: list[tuple[str, str]]) -> str:
+    def report(
+        self, token: str, progress: float | None, message: str | None, logs: list[tuple[str, str]]
+    ) -> str:
         ev = self._events.setdefault(token, {"progress": None, "message": None, "logs": []})
         if progress is not None:
             ev["progress"] = progress
@@ -155,14 +157,25 @@ class RayExecutor(Executor):
         if not ray.is_initialized():
             # ray.init replaces the SIGTERM handler of the main thread; keep the server's, so
             # that stopping the API still hands running jobs back.
-            previous = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
+            previous = (
+                signal.getsignal(signal.SIGTERM)
+                if threading.current_thread() is threading.main_thread()
+                else None
+            )
             try:
                 if address == "local":
-                    ray.init(num_cpus=self.settings.ray_num_cpus, include_dashboard=False, namespace="csa")
+                    ray.init(
+                        num_cpus=self.settings.ray_num_cpus,
+                        include_dashboard=False,
+                        namespace="csa",
+                    )
                 else:
                     ray.init(address=address, namespace="csa")
             except Exception as e:
-                raise RuntimeError(f"CSA_RAY_ADDRESS={address!r}: cannot connect to a Ray cluster: {type(e).__name__}: {e}") from e
+                raise RuntimeError(
+                    f"CSA_RAY_ADDRESS={address!r}: cannot connect to a Ray cluster: "
+                    f"{type(e).__name__}: {e}"
+                ) from e
             finally:
                 if previous is not None:
                     signal.signal(signal.SIGTERM, previous)
@@ -179,8 +192,14 @@ class RayExecutor(Executor):
 
         # Hard affinity: a soft one moves the actor to another node whenever the API's node
         # looks busy (a task holding its CPUs), and then losing that node loses the channel.
-        near_api = NodeAffinitySchedulingStrategy(node_id=ray.get_runtime_context().get_node_id(), soft=False)
-        channel = ray.remote(JobChannel).options(num_cpus=0, scheduling_strategy=near_api, max_restarts=0).remote()
+        near_api = NodeAffinitySchedulingStrategy(
+            node_id=ray.get_runtime_context().get_node_id(), soft=False
+        )
+        channel = (
+            ray.remote(JobChannel)
+            .options(num_cpus=0, scheduling_strategy=near_api, max_restarts=0)
+            .remote()
+        )
         ray.get(channel.drain.remote(), timeout=120)  # it answers before any task reports to it
         return channel
 
@@ -189,7 +208,9 @@ class RayExecutor(Executor):
         import ray
 
         for a in list(self._attempts.values()):
-            queue.release_to_queue(self.services.sessions, a.job_id, self.id, "the API is shutting down")
+            queue.release_to_queue(
+                self.services.sessions, a.job_id, self.id, "the API is shutting down"
+            )
             try:
                 ray.cancel(a.ref, force=True)
             except Exception:  # noqa: BLE001 - the task may have ended meanwhile
@@ -243,7 +264,9 @@ class RayExecutor(Executor):
             if now - self._channel_unavailable_since < CHANNEL_TIMEOUT_S:
                 log.warning("the job channel did not answer (%s); asking again", type(e).__name__)
                 return
-            log.warning("the job channel has not answered for %.0f s; starting a new one", CHANNEL_TIMEOUT_S)
+            log.warning(
+                "the job channel has not answered for %.0f s; starting a new one", CHANNEL_TIMEOUT_S
+            )
             self._channel_unavailable_since = None
             self._channel = self._new_channel()
             return
@@ -259,7 +282,15 @@ class RayExecutor(Executor):
             if a is None or a.lost:
                 continue  # an attempt that already ended (or a stale one)
             try:
-                cancelled = queue.report(self.services.sessions, a.job_id, self.id, ev["progress"], ev["message"], ev["logs"], self.settings.job_log_lines)
+                cancelled = queue.report(
+                    self.services.sessions,
+                    a.job_id,
+                    self.id,
+                    ev["progress"],
+                    ev["message"],
+                    ev["logs"],
+                    self.settings.job_log_lines,
+                )
             except queue.LostJob:
                 self._lose(a)
                 continue
@@ -270,7 +301,8 @@ class RayExecutor(Executor):
             self._channel.signal.remote(cancel, [])
 
     def _lose(self, a: _Attempt) -> None:
-        """The database gave the job to someone else (recovered after a lease expired): stop the task."""
+        """The database gave the job to someone else (recovered after a lease expired): stop the
+        task."""
         import ray
 
         a.lost = True
@@ -301,7 +333,11 @@ class RayExecutor(Executor):
         for a in self._attempts.values():
             if a.cancel_since is not None and not a.killed and now - a.cancel_since > grace:
                 a.killed = True
-                log.warning("job %s did not stop within %.0f s of its cancel; killing its task", a.job_id, grace)
+                log.warning(
+                    "job %s did not stop within %.0f s of its cancel; killing its task",
+                    a.job_id,
+                    grace,
+                )
                 ray.cancel(a.ref, force=True)
 
     def _collect(self) -> None:
@@ -334,27 +370,48 @@ class RayExecutor(Executor):
             if a.lost:
                 return
             if a.cancel_since is not None:
-                self.end(a.job_id, queue.CANCELLED, f"cancelled by request (its task was stopped {self.settings.ray_cancel_grace_seconds:.0f} s after the cancel)")
+                self.end(
+                    a.job_id,
+                    queue.CANCELLED,
+                    "cancelled by request (its task was stopped "
+                    f"{self.settings.ray_cancel_grace_seconds:.0f} s after the cancel)",
+                )
             else:
-                queue.attempt_lost(sessions, a.job_id, self.id, "its Ray task was cancelled", self.settings.max_attempts)
+                queue.attempt_lost(
+                    sessions,
+                    a.job_id,
+                    self.id,
+                    "its Ray task was cancelled",
+                    self.settings.max_attempts,
+                )
             return
         except RayTaskError as e:
             cause = e.cause if e.cause is not None else e
             self._log(a.job_id, [("ERROR", str(e)[-4000:])])
-            self.end(a.job_id, queue.FAILED, f"the Ray task failed: {type(cause).__name__}: {cause}")
+            self.end(
+                a.job_id, queue.FAILED, f"the Ray task failed: {type(cause).__name__}: {cause}"
+            )
             return
         except RayError as e:
             if a.lost:
                 return
             reason = lost_worker_reason(e)
-            status = queue.attempt_lost(sessions, a.job_id, self.id, reason, self.settings.max_attempts)
+            status = queue.attempt_lost(
+                sessions, a.job_id, self.id, reason, self.settings.max_attempts
+            )
             log.warning("job %s: %s -> %s", a.job_id, reason, status)
             return
         if a.lost:
             return
         self._log(a.job_id, outcome.logs)
         if outcome.status == INTERRUPTED:
-            queue.attempt_lost(sessions, a.job_id, self.id, f"its task stopped: {outcome.error}", self.settings.max_attempts)
+            queue.attempt_lost(
+                sessions,
+                a.job_id,
+                self.id,
+                f"its task stopped: {outcome.error}",
+                self.settings.max_attempts,
+            )
         elif outcome.status != queue.SUCCEEDED:
             self.end(a.job_id, outcome.status, outcome.error)
         else:
@@ -376,7 +433,9 @@ class RayExecutor(Executor):
             )
             log.info("job %s succeeded on node %s", a.job_id, outcome.node[:12])
         except queue.LostJob:
-            log.warning("job %s was recovered by another executor before it was registered", a.job_id)
+            log.warning(
+                "job %s was recovered by another executor before it was registered", a.job_id
+            )
         except Exception as e:  # noqa: BLE001 - a registration that fails fails the job, not the executor
             self._log(a.job_id, [("ERROR", traceback.format_exc(limit=20))])
             self.end(a.job_id, queue.FAILED, f"{type(e).__name__}: {e}")
@@ -387,7 +446,13 @@ class RayExecutor(Executor):
         if not lines:
             return
         try:
-            queue.report(self.services.sessions, job_id, self.id, logs=lines, keep_log_lines=self.settings.job_log_lines)
+            queue.report(
+                self.services.sessions,
+                job_id,
+                self.id,
+                logs=lines,
+                keep_log_lines=self.settings.job_log_lines,
+            )
         except queue.LostJob:
             pass  # the lines are kept; the job has moved on
 
@@ -419,7 +484,9 @@ class RayExecutor(Executor):
         free = self.slots() - len(self._attempts)
         kinds = runnable_kinds() if free > 0 else set()
         while free > 0 and kinds:
-            job = queue.claim_next(self.services.sessions, self.id, self.settings.lease_seconds, kinds)
+            job = queue.claim_next(
+                self.services.sessions, self.id, self.settings.lease_seconds, kinds
+            )
             if job is None:
                 return
             self._submit(job.id, job.kind, dict(job.params or {}), job.attempts)
@@ -442,21 +509,43 @@ class RayExecutor(Executor):
             compute = function_path(kind.compute)
             files = {sha: ray.put(data) for sha, data in read_input_files(inputs)}
         except Exception as e:  # noqa: BLE001 - e.g. a file missing from the store
-            self.end(job_id, queue.FAILED, f"could not read the job's inputs: {type(e).__name__}: {e}")
+            self.end(
+                job_id, queue.FAILED, f"could not read the job's inputs: {type(e).__name__}: {e}"
+            )
             return
         token = f"{job_id}-{uuid.uuid4().hex[:8]}"
         resources = self.resources(kind)
         device = task_device(self.settings.device, resources["num_gpus"])
-        settings = JobSettings(device=device, torch_threads=self.settings.torch_threads, job_log_lines=self.settings.job_log_lines)
+        settings = JobSettings(
+            device=device,
+            torch_threads=self.settings.torch_threads,
+            job_log_lines=self.settings.job_log_lines,
+        )
         spec = JobSpec(job_id, kind_name, attempt, token, compute, settings)
         # SPREAD: jobs go to different nodes when they can, rather than next to their inputs on
         # the API's node (each job is heavy, and its inputs are small next to its work).
-        options = {"name": f"csa-{kind_name}-{job_id}", "max_retries": 0, "scheduling_strategy": "SPREAD", **resources}
+        options = {
+            "name": f"csa-{kind_name}-{job_id}",
+            "max_retries": 0,
+            "scheduling_strategy": "SPREAD",
+            **resources,
+        }
         ref = self._task.options(**options).remote(spec, inputs, files, self._channel)
         self._attempts[token] = _Attempt(job_id, kind_name, token, ref, time.monotonic())
         wants = ", ".join(f"{k.removeprefix('num_')}={v:g}" for k, v in resources.items())
-        self._log(job_id, [("INFO", f"attempt {attempt}: submitted to the Ray cluster ({wants}) with {len(files)} input file(s)")])
+        self._log(
+            job_id,
+            [
+                (
+                    "INFO",
+                    f"attempt {attempt}: submitted to the Ray cluster ({wants}) with {len(files)} "
+                    "input file(s)",
+                )
+            ],
+        )
         try:
-            queue.report(self.services.sessions, job_id, self.id, message="waiting for the Ray cluster")
+            queue.report(
+                self.services.sessions, job_id, self.id, message="waiting for the Ray cluster"
+            )
         except queue.LostJob:
             pass

@@ -94,24 +94,38 @@ class RemoteJobContext(JobContext):
     def settings(self) -> JobSettings:
         return self.spec.settings
 
-    def _send(self, progress: float | None, message: str | None, logs: list[tuple[str, str]]) -> None:
+    def _send(
+        self, progress: float | None, message: str | None, logs: list[tuple[str, str]]
+    ) -> None:
         import ray
 
         deadline = time.monotonic() + CHANNEL_TIMEOUT_S
         while True:
             try:
-                state = ray.get(self.channel.report.remote(self.spec.token, progress, message, logs), timeout=CHANNEL_TIMEOUT_S)
+                state = ray.get(
+                    self.channel.report.remote(self.spec.token, progress, message, logs),
+                    timeout=CHANNEL_TIMEOUT_S,
+                )
                 break
             except ray.exceptions.ActorUnavailableError as e:
                 # Unavailable is not dead: a loaded node can miss a connection for a moment.
                 # Ask again until the deadline (a repeated report may repeat log lines).
                 if time.monotonic() > deadline:
-                    log.warning("job %s: the API node's channel has not answered for %.0f s (%s); stopping", self.job_id, CHANNEL_TIMEOUT_S, type(e).__name__)
+                    log.warning(
+                        "job %s: the API node's channel has not answered for %.0f s (%s); stopping",
+                        self.job_id,
+                        CHANNEL_TIMEOUT_S,
+                        type(e).__name__,
+                    )
                     self.lost.set()
                     return
                 time.sleep(1.0)
             except (ray.exceptions.RayActorError, ray.exceptions.GetTimeoutError) as e:
-                log.warning("job %s: the API node's channel does not answer (%s); stopping", self.job_id, type(e).__name__)
+                log.warning(
+                    "job %s: the API node's channel does not answer (%s); stopping",
+                    self.job_id,
+                    type(e).__name__,
+                )
                 self.lost.set()
                 return
         if state == CANCEL:
@@ -161,6 +175,7 @@ def _unpack_files(folder: Path, files: dict[str, Any]) -> dict[str, Path]:
 
 def localize_inputs(inputs: Any, local: dict[str, Path]) -> Any:
     """``inputs`` with each file pointing at the task's copy (checksum -> path)."""
+
     def moved(ref: FileRef) -> FileRef:
         return dataclasses.replace(ref, path=local[ref.sha256])
 
@@ -260,8 +275,13 @@ def run_job_task(spec: JobSpec, inputs: Any, files: dict[str, Any], channel: Any
         ctx.workdir.mkdir()
         import torch
 
-        logging.getLogger("csa_core").setLevel(logging.INFO)  # the core's progress lines reach the job's log
-        torch.set_num_threads(spec.settings.torch_threads or max(1, int(ray.get_runtime_context().get_assigned_resources().get("CPU", 1))))
+        logging.getLogger("csa_core").setLevel(
+            logging.INFO
+        )  # the core's progress lines reach the job's log
+        torch.set_num_threads(
+            spec.settings.torch_threads
+            or max(1, int(ray.get_runtime_context().get_assigned_resources().get("CPU", 1)))
+        )
         where = f"running on Ray node {node[:12]} (pid {os.getpid()}, attempt {spec.attempt})"
         computed: list[Any] = []
 

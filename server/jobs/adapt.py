@@ -64,7 +64,14 @@ def prepare(session: Session, params: AdaptParams, job: Job) -> tuple[dict[str, 
         preset(params.preset)
     except ValueError as e:
         raise invalid("params.preset", str(e)) from None
-    normalized = {"scene_id": scene.id, "lineage": model.lineage, "preset": params.preset, "mode": params.mode, "seed": params.seed, "make_current": params.make_current}
+    normalized = {
+        "scene_id": scene.id,
+        "lineage": model.lineage,
+        "preset": params.preset,
+        "mode": params.mode,
+        "seed": params.seed,
+        "make_current": params.make_current,
+    }
     return normalized, model.lineage
 
 

@@ -66,7 +66,9 @@ class JobContext:
         """What a job reads of the settings: ``device``, ``torch_threads``."""
         raise NotImplementedError
 
-    def _send(self, progress: float | None, message: str | None, logs: list[tuple[str, str]]) -> None:
+    def _send(
+        self, progress: float | None, message: str | None, logs: list[tuple[str, str]]
+    ) -> None:
         """Deliver progress and log lines; set :attr:`cancel_requested` / :attr:`lost`."""
         raise NotImplementedError
 
@@ -81,7 +83,9 @@ class JobContext:
         if self._stopping.is_set():
             raise JobInterrupted("executor shutting down")
 
-    def progress(self, fraction: float | None = None, message: str | None = None, force: bool = False) -> None:
+    def progress(
+        self, fraction: float | None = None, message: str | None = None, force: bool = False
+    ) -> None:
         """Report progress in [0, 1] and a short status line (throttled), then :meth:`check`."""
         now = time.monotonic()
         if force or now - self._last_progress >= _PROGRESS_EVERY:
@@ -120,7 +124,9 @@ class LocalJobContext(JobContext):
     """A job run by the embedded executor: progress and log lines go straight to this
     process's database, and :meth:`finish` registers the outputs there."""
 
-    def __init__(self, services: Services, job: Job, owner: str, workdir: Path, stopping: threading.Event):
+    def __init__(
+        self, services: Services, job: Job, owner: str, workdir: Path, stopping: threading.Event
+    ):
         super().__init__(job.id, job.kind, workdir, stopping)
         self.services = services
         self.owner = owner
@@ -129,9 +135,19 @@ class LocalJobContext(JobContext):
     def settings(self):
         return self.services.settings
 
-    def _send(self, progress: float | None, message: str | None, logs: list[tuple[str, str]]) -> None:
+    def _send(
+        self, progress: float | None, message: str | None, logs: list[tuple[str, str]]
+    ) -> None:
         try:
-            if queue.report(self.services.sessions, self.job_id, self.owner, progress, message, logs, self.settings.job_log_lines):
+            if queue.report(
+                self.services.sessions,
+                self.job_id,
+                self.owner,
+                progress,
+                message,
+                logs,
+                self.settings.job_log_lines,
+            ):
                 self.cancel_requested.set()
         except queue.LostJob:
             self.lost.set()
@@ -140,7 +156,9 @@ class LocalJobContext(JobContext):
         """Run ``register`` in the transaction that marks the job succeeded
         (``queue.finish``); :class:`JobInterrupted` when this executor lost the job."""
         try:
-            result = queue.finish(self.services.sessions, self.job_id, self.owner, queue.SUCCEEDED, register=register)
+            result = queue.finish(
+                self.services.sessions, self.job_id, self.owner, queue.SUCCEEDED, register=register
+            )
         except queue.LostJob as e:
             self.lost.set()
             raise JobInterrupted(str(e)) from None

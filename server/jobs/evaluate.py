@@ -32,21 +32,37 @@ from server.schemas.jobs import EvaluateParams
 
 def fully_labelled_scenes(session: Session) -> list[Scene]:
     counts = (
-        select(Frame.scene_id, func.count(Frame.id).label("n"), func.count(Frame.labels_sha256).label("labelled"))
+        select(
+            Frame.scene_id,
+            func.count(Frame.id).label("n"),
+            func.count(Frame.labels_sha256).label("labelled"),
+        )
         .group_by(Frame.scene_id)
         .subquery()
     )
-    return list(session.scalars(select(Scene).join(counts, counts.c.scene_id == Scene.id).where(counts.c.n == counts.c.labelled).order_by(Scene.id)))
+    return list(
+        session.scalars(
+            select(Scene)
+            .join(counts, counts.c.scene_id == Scene.id)
+            .where(counts.c.n == counts.c.labelled)
+            .order_by(Scene.id)
+        )
+    )
 
 
-def prepare(session: Session, params: EvaluateParams, job: Job) -> tuple[dict[str, Any], str | None]:
+def prepare(
+    session: Session, params: EvaluateParams, job: Job
+) -> tuple[dict[str, Any], str | None]:
     model = get_model(session, params.model)
     if params.scenes is None:
         scenes = fully_labelled_scenes(session)
         if not scenes:
             raise invalid("params.scenes", "no scene has ground-truth labels on every frame")
     else:
-        scenes = [require_ground_truth(session, sc, "params.scenes") for sc in get_scenes(session, params.scenes, "params.scenes")]
+        scenes = [
+            require_ground_truth(session, sc, "params.scenes")
+            for sc in get_scenes(session, params.scenes, "params.scenes")
+        ]
     return {"model_id": model.id, "scene_ids": [s.id for s in scenes], "split": params.split}, None
 
 

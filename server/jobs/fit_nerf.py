@@ -45,7 +45,8 @@ def _finite(x: float) -> float | None:
 
 
 def held_out_quality(nerf: Any, scene: Any) -> dict[str, float | None]:
-    """Colour PSNR and depth error of the NeRF on the scene's validation views (never trained on)."""
+    """Colour PSNR and depth error of the NeRF on the scene's validation views (never trained
+    on)."""
     from csa_core.nerf.losses import psnr
     from csa_core.nerf.render import render_views
 
@@ -53,8 +54,19 @@ def held_out_quality(nerf: Any, scene: Any) -> dict[str, float | None]:
     if not frames:
         return {}
     views = render_views(nerf, scene, "val", semantics=False)
-    mse = float(np.mean([np.mean((v.color.astype(np.float64) - f.color.astype(np.float64)) ** 2) / 255.0**2 for v, f in zip(views, frames, strict=True)]))
-    errors = [np.abs(v.depth - f.depth)[f.depth > 0] for v, f in zip(views, frames, strict=True) if f.depth is not None]
+    mse = float(
+        np.mean(
+            [
+                np.mean((v.color.astype(np.float64) - f.color.astype(np.float64)) ** 2) / 255.0**2
+                for v, f in zip(views, frames, strict=True)
+            ]
+        )
+    )
+    errors = [
+        np.abs(v.depth - f.depth)[f.depth > 0]
+        for v, f in zip(views, frames, strict=True)
+        if f.depth is not None
+    ]
     errors = [e for e in errors if e.size]
     return {
         "val_psnr": _finite(psnr(mse)),
@@ -67,7 +79,9 @@ def prepare(session: Session, params: FitNerfParams, job: Job) -> tuple[dict[str
     scene = get_scene(session, params.scene)
     if scene.intrinsics is None:
         raise invalid("params.scene", f"scene {scene.name!r} has no frames")
-    normalized: dict[str, Any] = params.model_dump(exclude={"scene", "model"}) | {"scene_id": scene.id}
+    normalized: dict[str, Any] = params.model_dump(exclude={"scene", "model"}) | {
+        "scene_id": scene.id
+    }
     if params.labels == "predictions":
         reason = capabilities.missing_reason("seg")
         if reason is not None:
@@ -127,7 +141,13 @@ def compute(inputs: FitNerfInputs, workdir: Path, ctx: JobContext) -> FitNerfOut
             model_file(inputs.model, workdir), device=torch_device(ctx) or "cpu"
         )
         ctx.progress(0.02, f"predicting labels with {inputs.model.name}")
-        preds = predict_scene(net, scene, split="train", device=torch_device(ctx), size=tuple(card.input_size) if card.input_size else None)
+        preds = predict_scene(
+            net,
+            scene,
+            split="train",
+            device=torch_device(ctx),
+            size=tuple(card.input_size) if card.input_size else None,
+        )
         for frame in scene.train_frames:
             frame.labels[PREDICTIONS_FOLDER] = preds[frame.name]
         label_folder, source = PREDICTIONS_FOLDER, f"predictions:{inputs.model.name}"
@@ -160,7 +180,13 @@ def compute(inputs: FitNerfInputs, workdir: Path, ctx: JobContext) -> FitNerfOut
     out = workdir / NERF_FILE
     save_checkpoint(nerf, out)
     ctx.progress(0.96, "rendering the validation views", force=True)
-    quality = {"preset": p["preset"], "train_psnr": _finite(stats.final_psnr), "final_loss": _finite(stats.final_loss), "fit_seconds": round(stats.seconds, 2), "steps": stats.steps}
+    quality = {
+        "preset": p["preset"],
+        "train_psnr": _finite(stats.final_psnr),
+        "final_loss": _finite(stats.final_loss),
+        "fit_seconds": round(stats.seconds, 2),
+        "steps": stats.steps,
+    }
     quality |= held_out_quality(nerf, scene)
     return FitNerfOutputs(inputs.scene.id, out, p["preset"], source, quality)
 

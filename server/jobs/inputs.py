@@ -34,7 +34,9 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
     return None if text is None else camera_parse_size(text, "size")
 
 
-def check_size(text: str | None, scenes: Sequence[SceneRow], field: str = "params.size") -> tuple[int, int] | None:
+def check_size(
+    text: str | None, scenes: Sequence[SceneRow], field: str = "params.size"
+) -> tuple[int, int] | None:
     """A job's optional working size, refused (422 naming ``field``) when it is larger than the
     colour frames of all its ``scenes``: a job holds every frame at this size, so upsampling
     would only multiply its memory (a 40x30 scene read at 8192x8192 takes gigabytes), while the
@@ -45,7 +47,11 @@ def check_size(text: str | None, scenes: Sequence[SceneRow], field: str = "param
     widest = max((int(s.intrinsics["width"]) for s in scenes if s.intrinsics), default=0)
     tallest = max((int(s.intrinsics["height"]) for s in scenes if s.intrinsics), default=0)
     if size[0] > widest or size[1] > tallest:
-        raise invalid(field, f"{size[0]}x{size[1]} is larger than the scene's frames ({widest}x{tallest}); jobs work at the frames' size or smaller")
+        raise invalid(
+            field,
+            f"{size[0]}x{size[1]} is larger than the scene's frames ({widest}x{tallest}); jobs "
+            "work at the frames' size or smaller",
+        )
     return size
 
 

@@ -22,12 +22,16 @@ from server.registry import register_checkpoint, root_conflict
 from server.schemas.jobs import PretrainParams
 
 
-def prepare(session: Session, params: PretrainParams, job: Job) -> tuple[dict[str, Any], str | None]:
+def prepare(
+    session: Session, params: PretrainParams, job: Job
+) -> tuple[dict[str, Any], str | None]:
     from csa_core.seg import ARCH_NAMES, DEFAULT_ARCH
 
     arch = params.arch or DEFAULT_ARCH
     if arch not in ARCH_NAMES:
-        raise invalid("params.arch", f"unknown architecture {arch!r} (known: {', '.join(ARCH_NAMES)})")
+        raise invalid(
+            "params.arch", f"unknown architecture {arch!r} (known: {', '.join(ARCH_NAMES)})"
+        )
     scenes = get_scenes(session, params.scenes, "params.scenes")
     val = get_scenes(session, params.val_scenes or [], "params.val_scenes")
     both = sorted({s.name for s in scenes} & {s.name for s in val})
@@ -36,7 +40,10 @@ def prepare(session: Session, params: PretrainParams, job: Job) -> tuple[dict[st
     for field, group in (("params.scenes", scenes), ("params.val_scenes", val)):
         for sc in group:
             require_ground_truth(session, sc, field)  # trains and scores on the uploaded labels
-    size = check_size(params.size, scenes) or (scenes[0].intrinsics["width"], scenes[0].intrinsics["height"])
+    size = check_size(params.size, scenes) or (
+        scenes[0].intrinsics["width"],
+        scenes[0].intrinsics["height"],
+    )
     if min(size) < 8:
         raise invalid("params.size", "width and height must be at least 8")
     name = params.name or f"pretrain-{job.id}"
@@ -96,16 +103,27 @@ def compute(inputs: PretrainInputs, workdir: Path, ctx: JobContext) -> PretrainO
     config = PretrainConfig(
         arch=p["arch"],
         size=size,
-        train=TrainConfig(epochs=p["epochs"], batch_size=p["batch_size"], lr=p["lr"], seed=p["seed"], device=torch_device(ctx), progress=False),
+        train=TrainConfig(
+            epochs=p["epochs"],
+            batch_size=p["batch_size"],
+            lr=p["lr"],
+            seed=p["seed"],
+            device=torch_device(ctx),
+            progress=False,
+        ),
     )
     ctx.progress(0.1, f"training {p['arch']} for {p['epochs']} epoch(s)", force=True)
     out = workdir / "model.safetensors"
-    _, result = pretrain(scenes, config, out=out, val_scenes=val or None, on_progress=ctx.core_progress(0.1, 0.95))
+    _, result = pretrain(
+        scenes, config, out=out, val_scenes=val or None, on_progress=ctx.core_progress(0.1, 0.95)
+    )
     ctx.progress(0.95, "registering the model", force=True)
     score = result.best_score
     metrics = {
         "val_miou": score if score is not None and math.isfinite(score) else None,
-        "val_miou_per_scene": {k: (v if math.isfinite(v) else None) for k, v in result.best_val_miou.items()},
+        "val_miou_per_scene": {
+            k: (v if math.isfinite(v) else None) for k, v in result.best_val_miou.items()
+        },
         "best_epoch": result.best_epoch,
         "train_seconds": round(result.seconds, 2),
     }

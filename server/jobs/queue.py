@@ -31,7 +31,13 @@ from server import faults
 from server.db.models import Job, JobLog, LineageLock, Worker, utcnow
 from server.db.session import session_scope
 
-QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELLED = "queued", "running", "succeeded", "failed", "cancelled"
+QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELLED = (
+    "queued",
+    "running",
+    "succeeded",
+    "failed",
+    "cancelled",
+)
 TERMINAL = frozenset({SUCCEEDED, FAILED, CANCELLED})
 STATUSES = (QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELLED)
 
@@ -73,15 +79,25 @@ def append_log(session: Session, job_id: int, message: str, level: str = "INFO")
 
 
 def trim_log(session: Session, job_id: int, keep: int) -> None:
-    cutoff = session.scalar(select(JobLog.id).where(JobLog.job_id == job_id).order_by(JobLog.id.desc()).offset(keep).limit(1))
+    cutoff = session.scalar(
+        select(JobLog.id)
+        .where(JobLog.job_id == job_id)
+        .order_by(JobLog.id.desc())
+        .offset(keep)
+        .limit(1)
+    )
     if cutoff is not None:
         session.execute(delete(JobLog).where(JobLog.job_id == job_id, JobLog.id <= cutoff))
 
 
-def claim_next(factory: sessionmaker[Session], owner: str, lease_seconds: float, kinds: set[str]) -> Job | None:
+def claim_next(
+    factory: sessionmaker[Session], owner: str, lease_seconds: float, kinds: set[str]
+) -> Job | None:
     """Mark the oldest runnable queued job as running for ``owner`` and return it."""
     with session_scope(factory) as s:
-        candidates = s.scalars(select(Job).where(Job.status == QUEUED, Job.kind.in_(kinds)).order_by(Job.id).limit(50)).all()
+        candidates = s.scalars(
+            select(Job).where(Job.status == QUEUED, Job.kind.in_(kinds)).order_by(Job.id).limit(50)
+        ).all()
     seen_lineages: set[str] = set()
     for job in candidates:
         if job.lineage is not None:
@@ -121,7 +137,9 @@ def claim_next(factory: sessionmaker[Session], owner: str, lease_seconds: float,
     return None
 
 
-def renew_leases(factory: sessionmaker[Session], owner: str, lease_seconds: float) -> tuple[set[int], set[int]]:
+def renew_leases(
+    factory: sessionmaker[Session], owner: str, lease_seconds: float
+) -> tuple[set[int], set[int]]:
     """Extend the lease of every job ``owner`` runs; returns (the ids it still owns, those of
     them whose cancellation was requested). A job missing from the first set was lost."""
     now = utcnow()
@@ -131,7 +149,11 @@ def renew_leases(factory: sessionmaker[Session], owner: str, lease_seconds: floa
             .where(Job.worker_id == owner, Job.status == RUNNING)
             .values(heartbeat_at=now, lease_expires_at=now + dt.timedelta(seconds=lease_seconds))
         )
-        rows = s.execute(select(Job.id, Job.cancel_requested).where(Job.worker_id == owner, Job.status == RUNNING)).all()
+        rows = s.execute(
+            select(Job.id, Job.cancel_requested).where(
+                Job.worker_id == owner, Job.status == RUNNING
+            )
+        ).all()
     return {job_id for job_id, _ in rows}, {job_id for job_id, cancel in rows if cancel}
 
 
@@ -155,7 +177,11 @@ def report(
     lost = False
     with session_scope(factory) as s:
         if values:
-            res = s.execute(update(Job).where(Job.id == job_id, Job.worker_id == owner, Job.status == RUNNING).values(**values))
+            res = s.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.worker_id == owner, Job.status == RUNNING)
+                .values(**values)
+            )
             lost = res.rowcount != 1
         lines = list(logs)
         for level, line in lines:
@@ -170,7 +196,11 @@ def report(
 
 def _release_lineage(s: Session, job: Job) -> None:
     if job.lineage is not None:
-        s.execute(delete(LineageLock).where(LineageLock.lineage == job.lineage, LineageLock.job_id == job.id))
+        s.execute(
+            delete(LineageLock).where(
+                LineageLock.lineage == job.lineage, LineageLock.job_id == job.id
+            )
+        )
 
 
 def finish(
@@ -202,13 +232,20 @@ def finish(
                 finished_at=now,
                 lease_expires_at=None,
                 progress=1.0 if status == SUCCEEDED else Job.progress,
-                message={SUCCEEDED: "done", FAILED: "failed", CANCELLED: "cancelled"}.get(status, status),
+                message={SUCCEEDED: "done", FAILED: "failed", CANCELLED: "cancelled"}.get(
+                    status, status
+                ),
             )
         )
         if res.rowcount != 1:
             raise LostJob(f"job {job_id} is no longer running under {owner}")
         _release_lineage(s, job)
-        append_log(s, job_id, f"{status}" + (f": {error}" if error else ""), "ERROR" if status == FAILED else "INFO")
+        append_log(
+            s,
+            job_id,
+            f"{status}" + (f": {error}" if error else ""),
+            "ERROR" if status == FAILED else "INFO",
+        )
     return result
 
 
@@ -219,7 +256,12 @@ def release_to_queue(factory: sessionmaker[Session], job_id: int, owner: str, re
         if job is None or job.status != RUNNING or job.worker_id != owner:
             return
         if job.cancel_requested:
-            job.status, job.finished_at, job.error, job.message = CANCELLED, utcnow(), "cancelled by request", "cancelled"
+            job.status, job.finished_at, job.error, job.message = (
+                CANCELLED,
+                utcnow(),
+                "cancelled by request",
+                "cancelled",
+            )
         else:
             job.status, job.message = QUEUED, f"re-queued: {reason}"
             job.attempts = max(0, job.attempts - 1)
@@ -228,15 +270,27 @@ def release_to_queue(factory: sessionmaker[Session], job_id: int, owner: str, re
         append_log(s, job_id, job.message, "WARNING")
 
 
-def _after_lost_attempt(job: Job, reason: str, max_attempts: int, now: dt.datetime) -> tuple[dict[str, Any], str]:
+def _after_lost_attempt(
+    job: Job, reason: str, max_attempts: int, now: dt.datetime
+) -> tuple[dict[str, Any], str]:
     """What becomes of a running job whose attempt was lost (owner or Ray worker died):
     cancelled if that was asked, failed after ``max_attempts`` attempts, else queued again.
     Returns the column values and the log line."""
     if job.cancel_requested:
-        return {"status": CANCELLED, "finished_at": now, "error": "cancelled by request", "message": "cancelled"}, f"cancelled: {reason} while cancelling"
+        return {
+            "status": CANCELLED,
+            "finished_at": now,
+            "error": "cancelled by request",
+            "message": "cancelled",
+        }, f"cancelled: {reason} while cancelling"
     if job.attempts >= max_attempts:
         msg = f"{reason} during attempt {job.attempts} of {max_attempts}; not retried"
-        return {"status": FAILED, "finished_at": now, "error": msg, "message": "failed"}, f"failed: {msg}"
+        return {
+            "status": FAILED,
+            "finished_at": now,
+            "error": msg,
+            "message": "failed",
+        }, f"failed: {msg}"
     msg = f"re-queued after attempt {job.attempts} of {max_attempts}: {reason}"
     return {"status": QUEUED, "message": msg}, msg
 
@@ -255,7 +309,9 @@ def _end_lost_attempt(s: Session, job: Job, reason: str, max_attempts: int) -> b
     return True
 
 
-def attempt_lost(factory: sessionmaker[Session], job_id: int, owner: str, reason: str, max_attempts: int) -> str | None:
+def attempt_lost(
+    factory: sessionmaker[Session], job_id: int, owner: str, reason: str, max_attempts: int
+) -> str | None:
     """An attempt of a job ``owner`` runs died with its process (a Ray worker or node):
     re-queue the job, or fail it after ``max_attempts``. Returns the job's new status (None
     if ``owner`` no longer ran it)."""
@@ -273,7 +329,12 @@ def attempt_lost(factory: sessionmaker[Session], job_id: int, owner: str, reason
 def request_cancel(session: Session, job: Job) -> Job:
     """Cancel a queued job now; ask a running one to stop at its next check."""
     if job.status == QUEUED:
-        job.status, job.finished_at, job.message, job.error = CANCELLED, utcnow(), "cancelled", "cancelled by request"
+        job.status, job.finished_at, job.message, job.error = (
+            CANCELLED,
+            utcnow(),
+            "cancelled",
+            "cancelled by request",
+        )
         append_log(session, job.id, "cancelled before it started")
     elif job.status == RUNNING:
         job.cancel_requested = True
@@ -331,7 +392,10 @@ def stale_jobs(s: Session) -> list[tuple[Job, str]]:
         owner = s.get(Worker, job.worker_id) if job.worker_id else None
         reason = _owner_gone(owner, job.worker_id)
         if reason is None and job.lease_expires_at is not None and job.lease_expires_at < now:
-            reason = f"lease expired at {job.lease_expires_at.isoformat(timespec='seconds')}Z ({job.worker_id} stopped renewing it)"
+            reason = (
+                f"lease expired at {job.lease_expires_at.isoformat(timespec='seconds')}Z "
+                f"({job.worker_id} stopped renewing it)"
+            )
         if reason is not None:
             found.append((job, reason))
     return found

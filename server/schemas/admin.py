@@ -13,15 +13,26 @@ from server.schemas.common import RecordOut, Timestamp
 class KeyCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z][A-Za-z0-9_.-]*$", description="unique, also after revocation")
+    name: str = Field(
+        min_length=1,
+        max_length=64,
+        pattern=r"^[A-Za-z][A-Za-z0-9_.-]*$",
+        description="unique, also after revocation",
+    )
     scope: Scope
-    expires_in: str | None = Field(default=None, max_length=16, description="lifetime such as 30d, 12h, 90m or 2w (default: no expiry)")
+    expires_in: str | None = Field(
+        default=None,
+        max_length=16,
+        description="lifetime such as 30d, 12h, 90m or 2w (default: no expiry)",
+    )
 
 
 class KeyOut(RecordOut):
     id: int
     name: str
-    prefix: str = Field(description="the key's first characters; the key itself is never shown again")
+    prefix: str = Field(
+        description="the key's first characters; the key itself is never shown again"
+    )
     scope: Scope
     state: str = Field(description="active, expired or revoked")
     created_at: Timestamp

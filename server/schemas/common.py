@@ -25,12 +25,22 @@ from server.db.models import MAX_ID
 RowId = Annotated[int, Field(ge=1, le=MAX_ID)]
 
 # A scene or model named by id (digits) or by name.
-Ref = Annotated[str, StringConstraints(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")] | RowId
+Ref = (
+    Annotated[
+        str,
+        StringConstraints(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$"),
+    ]
+    | RowId
+)
 
 # Names contain a non-digit so that they never look like ids (all-digit references are ids).
 Name = Annotated[
     str,
-    StringConstraints(min_length=1, max_length=128, pattern=r"^(?:[A-Za-z][A-Za-z0-9_.-]*|[0-9]+[A-Za-z_.-][A-Za-z0-9_.-]*)$"),
+    StringConstraints(
+        min_length=1,
+        max_length=128,
+        pattern=r"^(?:[A-Za-z][A-Za-z0-9_.-]*|[0-9]+[A-Za-z_.-][A-Za-z0-9_.-]*)$",
+    ),
 ]
 
 
@@ -83,8 +93,19 @@ def core_rule(kind: str, check: Callable[[Any], object]) -> AfterValidator:
 # A camera-to-world pose in a request body, checked by the core's rule for poses
 # (csa_core.data.camera.check_pose): finite, rigid (rotation and translation only), bounded.
 Pose = Annotated[
-    list[Annotated[list[Annotated[float, Field(allow_inf_nan=False)]], Field(min_length=4, max_length=4)]],
-    Field(min_length=4, max_length=4, description="4x4 camera-to-world matrix (rows, metres, OpenCV axes): a rigid transform, last row 0 0 0 1"),
+    list[
+        Annotated[
+            list[Annotated[float, Field(allow_inf_nan=False)]], Field(min_length=4, max_length=4)
+        ]
+    ],
+    Field(
+        min_length=4,
+        max_length=4,
+        description=(
+            "4x4 camera-to-world matrix (rows, metres, OpenCV axes): a rigid transform, "
+            "last row 0 0 0 1"
+        ),
+    ),
     core_rule("pose", lambda rows: check_pose(np.asarray(rows, dtype=np.float64), "pose")),
 ]
 
@@ -107,7 +128,10 @@ class IntrinsicsIn(BaseModel):
 
 
 # A camera in a request body; sane for its image size by the core's rule for cameras.
-Camera = Annotated[IntrinsicsIn, core_rule("intrinsics", lambda intr: check_intrinsics(intr.camera(), "intrinsics"))]
+Camera = Annotated[
+    IntrinsicsIn,
+    core_rule("intrinsics", lambda intr: check_intrinsics(intr.camera(), "intrinsics")),
+]
 
 
 class IntrinsicsOut(BaseModel):
@@ -122,7 +146,13 @@ class IntrinsicsOut(BaseModel):
 ERROR_RESPONSES: dict[int | str, dict] = {
     400: {"model": ErrorBody, "description": "malformed body (not JSON, broken multipart)"},
     401: {"model": ErrorBody, "description": "missing, invalid, revoked or expired API key"},
-    403: {"model": ErrorBody, "description": "the key's scope does not reach this route or scene (the message names the scope needed)"},
+    403: {
+        "model": ErrorBody,
+        "description": (
+            "the key's scope does not reach this route or scene "
+            "(the message names the scope needed)"
+        ),
+    },
     404: {"model": ErrorBody, "description": "not found"},
     422: {"model": ErrorBody, "description": "invalid input; `field` names the culprit"},
 }

@@ -16,7 +16,9 @@ class RenderRequest(BaseModel):
 
     pose: Pose
     intrinsics: Camera | None = Field(default=None, description="default: the scene's camera")
-    channels: list[Channel] = Field(default_factory=lambda: ["color", "depth", "labels"], min_length=1, max_length=4)
+    channels: list[Channel] = Field(
+        default_factory=lambda: ["color", "depth", "labels"], min_length=1, max_length=4
+    )
     nerf_id: RowId | None = Field(default=None, description="default: the scene's active NeRF")
 
 

@@ -42,8 +42,9 @@ def pretrained(source_scenes) -> SegmentationNet:
 
     config = PretrainConfig(
         size=SIZE,
-        train=TrainConfig(epochs=4, batch_size=4, progress=False, precise_bn_images=16, device="cpu"),
+        train=TrainConfig(
+            epochs=4, batch_size=4, progress=False, precise_bn_images=16, device="cpu"
+        ),
     )
     model, _ = pretrain(source_scenes, config)
     return model
-

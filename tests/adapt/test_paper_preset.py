@@ -1,5 +1,5 @@
-"""``paper`` is the paper's configuration (docs/presets.md "The paper preset"): every number it fixes,
-read from the objects the adaptation step builds, and the joint schedule and the NeRF budgets
+"""``paper`` is the paper's configuration (docs/presets.md "The paper preset"): every number it
+fixes, read from the objects the adaptation step builds, and the joint schedule and the NeRF budgets
 counted in a real run of a scaled-down copy on a tiny room."""
 
 from __future__ import annotations
@@ -84,8 +84,10 @@ def test_the_nerf_is_the_papers():
 
     # The model and the optimiser built from it.
     nerf, _ = fit_semantic_nerf(scene, None, cfg, device="cpu", steps=0, progress=False)
-    assert nerf.box == fixed_cube_box(scene.train_frames, 4.0, 1.32) != scene_box_from_frames(
-        scene.train_frames, scene.intrinsics
+    assert (
+        nerf.box
+        == fixed_cube_box(scene.train_frames, 4.0, 1.32)
+        != scene_box_from_frames(scene.train_frames, scene.intrinsics)
     )
     assert nerf.field.semantic_table is None
     linear = [m for m in nerf.field.semantic_mlp if isinstance(m, nn.Linear)]

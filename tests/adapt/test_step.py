@@ -205,7 +205,9 @@ def _spy_colour(monkeypatch, force: bool | None = None) -> list[tuple[str, bool]
 
     def pseudo_labels(model, scene, budget, device=None, on_progress=None, color=True):
         calls.append(("prefit", color))
-        return original(model, scene, budget, device, on_progress, color if force is None else force)
+        return original(
+            model, scene, budget, device, on_progress, color if force is None else force
+        )
 
     def renders(nerf, scene, color=True):
         calls.append(("round", color))
@@ -216,7 +218,9 @@ def _spy_colour(monkeypatch, force: bool | None = None) -> list[tuple[str, bool]
     return calls
 
 
-def test_joint_training_on_camera_images_renders_labels_only(pretrained, target_scenes, monkeypatch):
+def test_joint_training_on_camera_images_renders_labels_only(
+    pretrained, target_scenes, monkeypatch
+):
     """With ``joint.render_images=False`` (the ``cpu`` preset) no NeRF image is rendered, and
     rendering them anyway changes nothing: the same network weights and label scores."""
     config = tiny_config("joint")
@@ -238,7 +242,9 @@ def test_joint_training_on_camera_images_renders_labels_only(pretrained, target_
     assert result.after == forced.after
 
 
-def test_joint_training_on_renders_skips_the_last_rounds_images(pretrained, target_scenes, monkeypatch):
+def test_joint_training_on_renders_skips_the_last_rounds_images(
+    pretrained, target_scenes, monkeypatch
+):
     """With rendered images (``tiny``, ``paper``) the pre-fit and every round but the last
     render images; the last round's labels only feed the guard and the score."""
     config = tiny_config("joint")

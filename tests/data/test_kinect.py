@@ -113,7 +113,9 @@ def test_flying_pixels_lie_between_the_two_surfaces_of_a_jump() -> None:
     assert not changed[~outline].any()
     edge_pixels = outline.sum() - 4  # the four corners touch the box only diagonally
     assert 0.35 < changed.sum() / edge_pixels < 0.65
-    assert np.all((out[changed] >= 1.5 + 0.1 * 1.5 - 1e-6) & (out[changed] <= 1.5 + 0.9 * 1.5 + 1e-6))
+    assert np.all(
+        (out[changed] >= 1.5 + 0.1 * 1.5 - 1e-6) & (out[changed] <= 1.5 + 0.9 * 1.5 + 1e-6)
+    )
     assert out[0, 0] == 0.0 and out.dtype == np.float32
     # Deterministic for a seed; share 0 changes nothing; a share outside [0, 1] is refused.
     assert np.array_equal(out, mix_depth_edges(depth, np.random.default_rng(0), share))

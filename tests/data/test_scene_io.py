@@ -61,7 +61,10 @@ def test_resize_scales_intrinsics_and_uses_nearest_for_depth_and_labels(tmp_path
     assert k.fx == pytest.approx(15.0) and k.fy == pytest.approx(15.5)
     # pixel (i, j) at half size covers source pixels 2i..2i+1; nearest picks one of them
     src, dst = scene.frames[0], back.frames[0]
-    for name, a, b in (("depth", src.depth, dst.depth), ("labels", src.labels["label-nyu40"], dst.labels["label-nyu40"])):
+    for name, a, b in (
+        ("depth", src.depth, dst.depth),
+        ("labels", src.labels["label-nyu40"], dst.labels["label-nyu40"]),
+    ):
         blocks = a.reshape(12, 2, 16, 2).transpose(0, 2, 1, 3).reshape(12, 16, 4)
         assert np.all((blocks == b[..., None]).any(-1)), name
     assert dst.color.shape == (12, 16, 3)
@@ -80,7 +83,9 @@ def _scannet_like(tmp_path: Path) -> Path:
     depth_mm = (1000 + 10 * u + 1000 * v).astype(np.uint16)  # encodes the depth pixel it came from
     rng = np.random.default_rng(0)
     for i in range(5):
-        cv2.imwrite(str(root / "color" / f"{i}.jpg"), rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+        cv2.imwrite(
+            str(root / "color" / f"{i}.jpg"), rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
+        )
         cv2.imwrite(str(root / "depth" / f"{i}.png"), depth_mm)
         raw = np.full((48, 64), 7, np.uint16)
         raw[:, 32:] = 1164  # a raw id that maps to NYU40 via the tsv
@@ -91,7 +96,9 @@ def _scannet_like(tmp_path: Path) -> Path:
         if i == 2:
             pose[:] = -np.inf
         np.savetxt(root / "pose" / f"{i}.txt", pose)
-    (tmp_path / "labels.tsv").write_text("id\traw_category\tcategory\tcount\tnyu40id\tnyu40class\n7\tchair\tchair\t1\t5\tchair\n1164\tbed\tbed\t1\t4\tbed\n")
+    (tmp_path / "labels.tsv").write_text(
+        "id\traw_category\tcategory\tcount\tnyu40id\tnyu40class\n7\tchair\tchair\t1\t5\tchair\n1164\tbed\tbed\t1\t4\tbed\n"
+    )
     return root
 
 
@@ -134,7 +141,9 @@ def test_named_label_folder_and_unknown_folder(tmp_path, random_scene):
     root = write_scene(random_scene, tmp_path / "s")
     scene = read_scene(root, labels=["pred-v1"])
     assert scene.label_folders == ["pred-v1"]
-    with pytest.raises(CSAInputError, match=r"unknown label folder 'nope' \(this scene has: label-nyu40, pred-v1\)"):
+    with pytest.raises(
+        CSAInputError, match=r"unknown label folder 'nope' \(this scene has: label-nyu40, pred-v1\)"
+    ):
         read_scene(root, labels=["nope"])
 
 
@@ -164,25 +173,87 @@ def _depth_in_metres(root: Path) -> None:
 @pytest.mark.parametrize(
     ("break_it", "pattern"),
     [
-        (lambda r: (r / "color" / "10.png").write_bytes(b"not an image"), r"color/10.png: cannot decode image"),
-        (lambda r: cv2.imwrite(str(r / "color" / "20.png"), np.zeros((5, 5, 3), np.uint8)), r"color/20.png: size mismatch"),
-        (lambda r: cv2.imwrite(str(r / "depth" / "30.png"), np.zeros((24, 32), np.uint8)), r"depth/30.png: depth must be a single-channel uint16"),
+        (
+            lambda r: (r / "color" / "10.png").write_bytes(b"not an image"),
+            r"color/10.png: cannot decode image",
+        ),
+        (
+            lambda r: cv2.imwrite(str(r / "color" / "20.png"), np.zeros((5, 5, 3), np.uint8)),
+            r"color/20.png: size mismatch",
+        ),
+        (
+            lambda r: cv2.imwrite(str(r / "depth" / "30.png"), np.zeros((24, 32), np.uint8)),
+            r"depth/30.png: depth must be a single-channel uint16",
+        ),
         (lambda r: (r / "pose" / "40.txt").unlink(), r"pose/40.txt: file not found"),
-        (lambda r: (r / "pose" / "0.txt").write_text("1 0 0\n0 1 0\n"), r"pose/0.txt: expected a 4x4 matrix, got 2x3"),
-        (lambda r: np.savetxt(r / "pose" / "10.txt", np.diag([5.0, 5.0, 5.0, 1.0])), r"pose/10.txt: rotation part is not orthonormal .* 24 > 0.001"),
-        (lambda r: np.savetxt(r / "pose" / "20.txt", np.diag([1.0, 1.0, -1.0, 1.0])), r"pose/20.txt: rotation part has determinant -1"),
-        (lambda r: np.savetxt(r / "pose" / "30.txt", np.r_[np.c_[np.eye(3), [2e4, 0, 0]], [[0, 0, 0, 1]]]), r"pose/30.txt: translation is 2e\+04 m from the origin"),
-        (lambda r: (r / "intrinsic" / "intrinsic_color.txt").write_text("0 0 16\n0 30 12\n0 0 1\n"), r"intrinsic_color.txt: focal lengths must be positive, fx is 0"),
-        (lambda r: (r / "intrinsic" / "intrinsic_color.txt").write_text("30 0 900\n0 30 12\n0 0 1\n"), r"intrinsic_color.txt: principal point cx = 900 px"),
-        (lambda r: (r / "intrinsic" / "intrinsic_color.txt").unlink(), r"intrinsic_color.txt: file not found"),
-        (lambda r: cv2.imwrite(str(r / "label-nyu40" / "0.png"), np.full((24, 32), 41, np.uint8)), r"label-nyu40/0.png: label id 41 is out of range"),
+        (
+            lambda r: (r / "pose" / "0.txt").write_text("1 0 0\n0 1 0\n"),
+            r"pose/0.txt: expected a 4x4 matrix, got 2x3",
+        ),
+        (
+            lambda r: np.savetxt(r / "pose" / "10.txt", np.diag([5.0, 5.0, 5.0, 1.0])),
+            r"pose/10.txt: rotation part is not orthonormal .* 24 > 0.001",
+        ),
+        (
+            lambda r: np.savetxt(r / "pose" / "20.txt", np.diag([1.0, 1.0, -1.0, 1.0])),
+            r"pose/20.txt: rotation part has determinant -1",
+        ),
+        (
+            lambda r: np.savetxt(
+                r / "pose" / "30.txt", np.r_[np.c_[np.eye(3), [2e4, 0, 0]], [[0, 0, 0, 1]]]
+            ),
+            r"pose/30.txt: translation is 2e\+04 m from the origin",
+        ),
+        (
+            lambda r: (r / "intrinsic" / "intrinsic_color.txt").write_text(
+                "0 0 16\n0 30 12\n0 0 1\n"
+            ),
+            r"intrinsic_color.txt: focal lengths must be positive, fx is 0",
+        ),
+        (
+            lambda r: (r / "intrinsic" / "intrinsic_color.txt").write_text(
+                "30 0 900\n0 30 12\n0 0 1\n"
+            ),
+            r"intrinsic_color.txt: principal point cx = 900 px",
+        ),
+        (
+            lambda r: (r / "intrinsic" / "intrinsic_color.txt").unlink(),
+            r"intrinsic_color.txt: file not found",
+        ),
+        (
+            lambda r: cv2.imwrite(
+                str(r / "label-nyu40" / "0.png"), np.full((24, 32), 41, np.uint8)
+            ),
+            r"label-nyu40/0.png: label id 41 is out of range",
+        ),
         (lambda r: shutil.rmtree(r / "pose"), r"pose: folder missing"),
         # Intrinsics of twice the image size (images resized after calibration).
-        (lambda r: (r / "intrinsic" / "intrinsic_color.txt").write_text("60 0 31.5\n0 62 23.5\n0 0 1\n"), r"intrinsic_color.txt: principal point cx = 31.5 px is far from the centre \(15.5\) of the 32x24 image"),
-        (lambda r: shutil.copy(r / "color" / "20.png", r / "color" / "20.jpg"), r"color/20.png: frame '20' has two images \(20.jpg and 20.png\)"),
-        (_depth_of_another_aspect, r"depth/0.png: size mismatch: depth is 32x32, colour is 32x24 \(aspect ratios differ; add intrinsic/intrinsic_depth.txt"),
-        (_depth_in_metres, r"depth: typical measured depth is 0.00\d+ m, outside 0.1..100 m: depth in another unit"),
-        (lambda r: (r / "depth" / "30.png").rename(r / "depth" / "30.tiff"), r"depth/30.png: file not found \(30.tiff is there, but this folder's images must be .png\)"),
+        (
+            lambda r: (r / "intrinsic" / "intrinsic_color.txt").write_text(
+                "60 0 31.5\n0 62 23.5\n0 0 1\n"
+            ),
+            r"intrinsic_color.txt: principal point cx = 31.5 px "
+            r"is far from the centre \(15.5\) of the 32x24 image",
+        ),
+        (
+            lambda r: shutil.copy(r / "color" / "20.png", r / "color" / "20.jpg"),
+            r"color/20.png: frame '20' has two images \(20.jpg and 20.png\)",
+        ),
+        (
+            _depth_of_another_aspect,
+            r"depth/0.png: size mismatch: depth is 32x32, colour is 32x24 "
+            r"\(aspect ratios differ; add intrinsic/intrinsic_depth.txt",
+        ),
+        (
+            _depth_in_metres,
+            r"depth: typical measured depth is 0.00\d+ m, "
+            r"outside 0.1..100 m: depth in another unit",
+        ),
+        (
+            lambda r: (r / "depth" / "30.png").rename(r / "depth" / "30.tiff"),
+            r"depth/30.png: file not found "
+            r"\(30.tiff is there, but this folder's images must be .png\)",
+        ),
         (lambda r: (r / "pose" / "20.txt").write_text("\n"), r"pose/20.txt: file is empty"),
     ],
 )

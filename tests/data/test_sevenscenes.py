@@ -21,7 +21,9 @@ def test_import_real_frames(tmp_path, seven_scenes_dir):
     raw = np.loadtxt(seven_scenes_dir / "frame-000020.pose.txt")
     np.testing.assert_allclose(back.frames[1].pose[:3, :3], raw[:3, :3])
     # the colour camera sits 2.5 cm along the depth camera's x axis
-    np.testing.assert_allclose(back.frames[1].pose[:3, 3], raw[:3, 3] + 0.025 * raw[:3, 0], atol=1e-9)
+    np.testing.assert_allclose(
+        back.frames[1].pose[:3, 3], raw[:3, 3] + 0.025 * raw[:3, 0], atol=1e-9
+    )
     depth = np.stack([f.depth for f in back.frames])
     valid = depth > 0
     # Kinect holes are kept as missing, not filled; the colour camera also sees a wider field

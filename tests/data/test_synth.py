@@ -42,7 +42,9 @@ def _steady(name: str):
 
 @pytest.fixture(scope="module")
 def steady_scenes():
-    return {name: generate_scene(_steady(name), STEADY_SEED, 12, (128, 96)) for name in family_names()}
+    return {
+        name: generate_scene(_steady(name), STEADY_SEED, 12, (128, 96)) for name in family_names()
+    }
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +125,11 @@ def test_depth_is_z_depth_of_points_inside_the_closed_room(steady_scenes):
     for family, scene in steady_scenes.items():
         room, _ = room_and_path(_steady(family), STEADY_SEED, 12)
         for f in scene.frames:
-            assert f.depth.dtype == np.float32 and f.color.dtype == np.uint8 and f.labels[NYU].dtype == np.uint8
+            assert (
+                f.depth.dtype == np.float32
+                and f.color.dtype == np.uint8
+                and f.labels[NYU].dtype == np.uint8
+            )
             assert np.all(np.isfinite(f.depth)) and f.depth.min() > 0.2
             assert f.depth.max() < math.hypot(room.width, room.depth, room.height)
             assert np.all(f.labels[NYU] > 0)
@@ -200,13 +206,17 @@ def test_layouts_hold_many_classes_and_nothing_interpenetrates(family):
         obj = [(gi, p.label, p.instance) for gi, p in sources]
         # Pairs whose bounds come within 2 cm: touching objects (books on a board, a lamp on a
         # desk, chairs at a table) are checked too.
-        near = np.all(lo[:, None, :] < hi[None, :, :] + 0.02, axis=-1) & np.all(lo[None, :, :] < hi[:, None, :] + 0.02, axis=-1)
+        near = np.all(lo[:, None, :] < hi[None, :, :] + 0.02, axis=-1) & np.all(
+            lo[None, :, :] < hi[:, None, :] + 0.02, axis=-1
+        )
         for i, j in zip(*np.nonzero(np.triu(near, 1)), strict=True):
             if obj[i] == obj[j]:
                 continue
             for a, b in ((i, j), (j, i)):
                 depth = solids.subset(np.array([b])).signed_distance(_fill(solids, a)).min()
-                assert depth > -1e-3, f"{sources[a][1].label} and {sources[b][1].label} interpenetrate"
+                assert depth > -1e-3, (
+                    f"{sources[a][1].label} and {sources[b][1].label} interpenetrate"
+                )
             checked += 1
     assert checked > 50
 
@@ -239,7 +249,8 @@ CORE = {"door", "window", "chair", "table", "sofa", "cabinet", "picture", "lamp"
 
 def test_families_share_a_core_of_classes_and_one_look_per_class():
     """Every family uses the same looks, and its rooms hold the same core classes (plus a few
-    rarer family-specific ones), so a network trained on one family knows most classes of another."""
+    rarer family-specific ones), so a network trained on one family knows most classes of
+    another."""
     seen: dict[str, set[str]] = {}
     for family in family_names():
         assert FAMILIES[family].looks == BASE_LOOKS
@@ -282,7 +293,12 @@ def test_each_room_draws_its_own_colours_around_the_family_shift():
 def test_slab_casting_matches_ray_marching():
     """Boxes turned about z and tilted about their own x axis."""
     rng = np.random.default_rng(0)
-    boxes = BoxSet(rng.uniform(-2, 2, (6, 3)), rng.uniform(0.1, 0.6, (6, 3)), rng.uniform(0, 2 * np.pi, 6), rng.uniform(-0.6, 0.6, 6))
+    boxes = BoxSet(
+        rng.uniform(-2, 2, (6, 3)),
+        rng.uniform(0.1, 0.6, (6, 3)),
+        rng.uniform(0, 2 * np.pi, 6),
+        rng.uniform(-0.6, 0.6, 6),
+    )
     origin = np.array([0.1, -4.0, 0.2])
     dirs = rng.normal(0, 1, (300, 3)) * [0.5, 0.0, 0.5] + [0, 1, 0]
     t, idx = closest_hit(origin, dirs, boxes, np.full(len(dirs), np.inf))
@@ -317,7 +333,12 @@ def test_textures_depend_only_on_the_surface_point():
     pts = rng.uniform(-1, 1, (n, 3))
     axis = rng.integers(0, 3, n)
     whole = albedo(mats, mat, pts, axis)
-    halves = np.concatenate([albedo(mats, mat[:700], pts[:700], axis[:700]), albedo(mats, mat[700:], pts[700:], axis[700:])])
+    halves = np.concatenate(
+        [
+            albedo(mats, mat[:700], pts[:700], axis[:700]),
+            albedo(mats, mat[700:], pts[700:], axis[700:]),
+        ]
+    )
     assert np.array_equal(whole, halves)
     assert whole.min() >= 0 and whole.max() <= 1 and whole.std() > 0.05
 
@@ -360,7 +381,9 @@ def test_synthesize_writes_scene_folders_that_read_back_exactly(tmp_path):
     for k, path in enumerate(paths):
         ref = generate_scene("office", scene_seed(5, k), 3, (64, 48))
         back = read_scene(path)
-        assert back.intrinsics.width == 64 and np.allclose(back.intrinsics.matrix(), ref.intrinsics.matrix())
+        assert back.intrinsics.width == 64 and np.allclose(
+            back.intrinsics.matrix(), ref.intrinsics.matrix()
+        )
         for fr, fb in zip(ref.frames, back.frames, strict=True):
             assert np.array_equal(fr.labels[NYU], fb.labels[NYU])
             assert np.abs(fr.depth - fb.depth).max() <= 0.0005 + 1e-6
@@ -368,5 +391,7 @@ def test_synthesize_writes_scene_folders_that_read_back_exactly(tmp_path):
             assert np.allclose(fr.pose, fb.pose, atol=1e-6)
     with pytest.raises(CSAInputError):
         synthesize(tmp_path, scenes=1, frames=2, size=(64, 48), family="office", seed=5)
-    again = synthesize(tmp_path, scenes=1, frames=2, size=(64, 48), family="office", seed=5, overwrite=True)
+    again = synthesize(
+        tmp_path, scenes=1, frames=2, size=(64, 48), family="office", seed=5, overwrite=True
+    )
     assert len(read_scene(again[0]).frames) == 2

@@ -64,7 +64,12 @@ def test_capsule_casting_matches_ray_marching():
     assert np.allclose(exact, first[hit], atol=1e-4)
     surface = origin + exact[:, None] * dirs[hit]
     ba = caps.b[idx] - caps.a[idx]
-    s = np.clip(np.einsum("ij,ij->i", surface - caps.a[idx], ba) / np.maximum(np.einsum("ij,ij->i", ba, ba), 1e-12), 0, 1)
+    s = np.clip(
+        np.einsum("ij,ij->i", surface - caps.a[idx], ba)
+        / np.maximum(np.einsum("ij,ij->i", ba, ba), 1e-12),
+        0,
+        1,
+    )
     dist = np.linalg.norm(surface - (caps.a[idx] + s[:, None] * ba), axis=1)
     assert np.allclose(dist, caps.radius[idx], atol=1e-9)
 
@@ -85,11 +90,17 @@ def _render_alone(parts, pose, size=(161, 121)):
 
 
 def test_a_two_centimetre_leg_is_chair_at_its_depth_in_a_close_view():
-    parts = chair_parts(np.random.default_rng(1), design=chair_design(np.random.default_rng(1), "tube"))
+    parts = chair_parts(
+        np.random.default_rng(1), design=chair_design(np.random.default_rng(1), "tube")
+    )
     room = Room(5.0, 5.0, 2.6)
     room.groups.append(PlacedGroup(make_group("test", parts, "free"), 2.5, 2.5, 0.0, None))
     solids, sources = room_solids(room)
-    legs = [k for k, (_, p) in enumerate(sources) if p.shape == "rod" and abs(p.tilt) < 1e-9 and p.center[2] < 0.3]
+    legs = [
+        k
+        for k, (_, p) in enumerate(sources)
+        if p.shape == "rod" and abs(p.tilt) < 1e-9 and p.center[2] < 0.3
+    ]
     k = legs[0] - len(solids.boxes)
     a, b, r = solids.caps.a[k], solids.caps.b[k], solids.caps.radius[k]
     assert 0.009 <= r <= 0.012 and a[2] < 0.02 and b[2] > 0.35  # 1.8-2.4 cm across, floor to seat
@@ -115,7 +126,11 @@ def test_a_two_centimetre_leg_is_chair_at_its_depth_in_a_close_view():
 def test_slat_gaps_show_what_is_behind_the_back():
     design = chair_design(np.random.default_rng(2), "slat")
     parts = chair_parts(np.random.default_rng(2), design=design)
-    slats = [p for p in parts if p.label == "chair" and p.role == "body" and p.half[2] > 0.05 and p.half[0] < 0.03]
+    slats = [
+        p
+        for p in parts
+        if p.label == "chair" and p.role == "body" and p.half[2] > 0.05 and p.half[0] < 0.03
+    ]
     assert len(slats) == design["slats"] >= 3
     z = slats[0].center[2]
     # From behind the chair (its back is at +y), 90 cm away, at the height of the slats' middle.
@@ -149,15 +164,29 @@ def test_every_family_has_thin_tilted_and_curved_parts_and_many_chairs_in_office
     for name in FAMILIES:
         rooms = [room_and_path(FAMILIES[name], seed, 2)[0] for seed in range(3)]
         parts = [p for room in rooms for g in room.groups for p in g.group.parts]
-        thin = [p for p in parts if min(p.half) * 2 <= 0.03 and p.label in ("chair", "table", "desk", "shelves", "lamp")]
+        thin = [
+            p
+            for p in parts
+            if min(p.half) * 2 <= 0.03 and p.label in ("chair", "table", "desk", "shelves", "lamp")
+        ]
         assert len(thin) > 30, name
         assert any(p.shape == "box" and abs(p.tilt) > 0.05 for p in parts), name
         assert sum(p.shape == "rod" for p in parts) > 20, name
-        chairs = [len({(gi, p.instance) for gi, g in enumerate(r.groups) for p in g.group.parts if p.label == "chair"}) for r in rooms]
+        chairs = [
+            len(
+                {
+                    (gi, p.instance)
+                    for gi, g in enumerate(r.groups)
+                    for p in g.group.parts
+                    if p.label == "chair"
+                }
+            )
+            for r in rooms
+        ]
         assert min(chairs) >= (4 if name == "office" else 1), (name, chairs)
 
 
-# ---- the random capture ---------------------------------------------------------------------------
+# ---- the random capture --------------------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -170,11 +199,15 @@ def test_random_views_stand_in_free_space_and_look_at_something(random_office):
     assert np.array_equal(poses, np.stack([f.pose for f in random_office.frames]))
     pos = poses[:, :3, 3]
     assert np.all(pos[:, 2] >= RANDOM_HEIGHT_M[0]) and np.all(pos[:, 2] <= RANDOM_HEIGHT_M[1])
-    assert np.all(pos[:, :2] >= RANDOM_CLEARANCE_M - 0.03) and np.all(pos[:, :2] <= room.hi[:2] - RANDOM_CLEARANCE_M + 0.03)
+    assert np.all(pos[:, :2] >= RANDOM_CLEARANCE_M - 0.03) and np.all(
+        pos[:, :2] <= room.hi[:2] - RANDOM_CLEARANCE_M + 0.03
+    )
     solids, _ = room_solids(room)
     assert solids.signed_distance(pos).min() > 0.1  # inside no piece of furniture
     R = poses[:, :3, :3]
-    assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-9) and np.allclose(np.linalg.det(R), 1.0)
+    assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-9) and np.allclose(
+        np.linalg.det(R), 1.0
+    )
     assert np.all(R[:, 2, 1] < 0)  # upright: image y points down
     # Spread through the room, not a walk: consecutive views are far apart.
     assert np.ptp(pos[:, 0]) > 0.4 * room.width and np.ptp(pos[:, 1]) > 0.4 * room.depth
@@ -201,13 +234,42 @@ def test_capture_is_chosen_by_name_on_the_command_line(tmp_path, capsys):
     with pytest.raises(CSAInputError) as err:
         generate_scene("office", 0, 2, (32, 24), capture="orbit")
     assert err.value.where == "--capture" and "walk, random" in err.value.problem
-    assert main(["data", "synth", str(tmp_path / "bad"), "--frames", "2", "--size", "32x24", "--capture", "orbit"]) == 2
+    assert (
+        main(
+            [
+                "data",
+                "synth",
+                str(tmp_path / "bad"),
+                "--frames",
+                "2",
+                "--size",
+                "32x24",
+                "--capture",
+                "orbit",
+            ]
+        )
+        == 2
+    )
     assert "--capture" in capsys.readouterr().err and not (tmp_path / "bad").exists()
-    argv = ["data", "synth", str(tmp_path), "--family", "studio", "--frames", "3", "--size", "32x24", "--capture", "random"]
+    argv = [
+        "data",
+        "synth",
+        str(tmp_path),
+        "--family",
+        "studio",
+        "--frames",
+        "3",
+        "--size",
+        "32x24",
+        "--capture",
+        "random",
+    ]
     assert main(argv) == 0
     back = read_scene(tmp_path / "studio_0_0")
     from csa_core.data.synth import scene_seed
 
     ref = generate_scene("studio", scene_seed(0, 0), 3, (32, 24), capture="random")
     for fr, fb in zip(ref.frames, back.frames, strict=True):
-        assert np.allclose(fr.pose, fb.pose, atol=1e-6) and np.array_equal(fr.labels[NYU], fb.labels[NYU])
+        assert np.allclose(fr.pose, fb.pose, atol=1e-6) and np.array_equal(
+            fr.labels[NYU], fb.labels[NYU]
+        )

@@ -272,7 +272,9 @@ def test_bad_input_is_one_line_and_exit_2(workspace, tmp_path, capsys, change, m
     assert not (tmp_path / "out").exists()
 
 
-def test_multi_step_resume_reuses_finished_runs_and_redoes_changed_ones(workspace, tmp_path, capsys, monkeypatch):
+def test_multi_step_resume_reuses_finished_runs_and_redoes_changed_ones(
+    workspace, tmp_path, capsys, monkeypatch
+):
     """``--resume``: runs an earlier invocation finished with the same inputs are read back,
     not run again, and the table is the same; a run whose config changed, or one that never
     finished, is done again."""
@@ -315,16 +317,29 @@ def test_resume_accepts_a_record_from_before_a_field_was_added_only_at_its_defau
     from csa_core.experiments.inputs import ExperimentInputs
 
     config = cpu()
-    record_config = {**json.loads(json.dumps(config.to_dict())), "method": "finetune", "pretrain_scenes": []}
+    record_config = {
+        **json.loads(json.dumps(config.to_dict())),
+        "method": "finetune",
+        "pretrain_scenes": [],
+    }
     del record_config["nerf"]["joint_prefit_epochs"]  # "recorded before the field existed"
     parts = ("multi-step", "finetune", "adabn-on", "seed0")
     folder = tmp_path.joinpath("runs", *parts)
     folder.mkdir(parents=True)
     b = np.array([0.25, 0.5])
-    record = {"scenes": ["a", "b"], "R": [[0.3, None], [0.2, 0.6]], "b": b.tolist(), "metrics": {"acc": 0.4}, "config": record_config}
+    record = {
+        "scenes": ["a", "b"],
+        "R": [[0.3, None], [0.2, 0.6]],
+        "b": b.tolist(),
+        "metrics": {"acc": 0.4},
+        "config": record_config,
+    }
     (folder / "results.json").write_text(json.dumps(record))
     inputs = SimpleNamespace(
-        resume=True, out=tmp_path, scenes=[SimpleNamespace(name="a"), SimpleNamespace(name="b")], pretrain_scenes=[]
+        resume=True,
+        out=tmp_path,
+        scenes=[SimpleNamespace(name="a"), SimpleNamespace(name="b")],
+        pretrain_scenes=[],
     )
     found = ExperimentInputs.finished_run(inputs, parts, config, "finetune", b)
     assert found is not None and np.isnan(found.R[0, 1]) and found.metrics == {"acc": 0.4}

@@ -94,9 +94,7 @@ def test_ablations_run_the_two_variants_with_their_loss(paper_run):
         assert r["config"]["nerf"]["overrides"][-1] == paper.ABLATIONS[r["variant"]][-1]
         # The NeRF the run fitted had the variant's loss (its stored config says so).
         record = json.loads(Path(r["results"]).read_text())
-        assert (
-            record["config"]["nerf"]["overrides"] == r["config"]["nerf"]["overrides"]
-        )
+        assert record["config"]["nerf"]["overrides"] == r["config"]["nerf"]["overrides"]
     rows = [r for r in read_csv(paper_run / "paper.csv") if r["table"] == "ablations"]
     assert {r["row"] for r in rows} == {"paper", *paper.ABLATIONS}
     md = (paper_run / "paper.md").read_text()

@@ -1,4 +1,5 @@
-"""Per-frame colour correction: identity at start, learns exposure, deterministic, survives checkpoints."""
+"""Per-frame colour correction: identity at start, learns exposure, deterministic, survives
+checkpoints."""
 
 from __future__ import annotations
 

@@ -157,7 +157,10 @@ def test_the_official_semantic_head_lets_the_semantic_loss_reach_the_geometry_fe
         field.density_mlp[-1].bias[0] = 3.0
     out = _render(field)
     semantic_loss(out["semantics"], torch.tensor([1, 5, 0, 40, 12, 12, 3, 7])).backward()
-    grads = {n: (0.0 if p.grad is None else float(p.grad.abs().sum())) for n, p in field.named_parameters()}
+    grads = {
+        n: (0.0 if p.grad is None else float(p.grad.abs().sum()))
+        for n, p in field.named_parameters()
+    }
     assert grads["encoding.table"] > 0
     assert sum(g for n, g in grads.items() if n.startswith("density_mlp")) > 0
     assert all(g == 0 for n, g in grads.items() if n.startswith("color_mlp"))

@@ -20,7 +20,9 @@ from csa_core.nerf.hash_encoding import HashEncoding
 pytest.importorskip("triton.runtime.interpreter")
 
 # 6 levels: dense ones, then hashed ones (16^3 < 2^12 < 34^3)
-SMALL = HashEncodingConfig(num_levels=6, log2_table_size=12, base_resolution=4, finest_resolution=128)
+SMALL = HashEncodingConfig(
+    num_levels=6, log2_table_size=12, base_resolution=4, finest_resolution=128
+)
 
 
 def _encoding(cfg: HashEncodingConfig = SMALL, seed: int = 0) -> HashEncoding:
@@ -37,7 +39,9 @@ def _positions(n: int, seed: int) -> torch.Tensor:
     return x
 
 
-def _reference(enc: HashEncoding, x: torch.Tensor, table: torch.Tensor, levels: int) -> torch.Tensor:
+def _reference(
+    enc: HashEncoding, x: torch.Tensor, table: torch.Tensor, levels: int
+) -> torch.Tensor:
     rows, w = enc.corners_eager(x, levels)
     return enc.interpolate(rows, w, table)
 
@@ -60,7 +64,9 @@ def test_table_gradient_matches_the_reference():
     ref_table = enc.table.detach().clone().requires_grad_(True)
     (_reference(enc, x, ref_table, SMALL.num_levels) * grad_out).sum().backward()
     table = enc.table.detach().clone().requires_grad_(True)
-    (hash_triton.encode(x, table, SMALL.num_levels, enc.kernel_layout()) * grad_out).sum().backward()
+    (
+        hash_triton.encode(x, table, SMALL.num_levels, enc.kernel_layout()) * grad_out
+    ).sum().backward()
     assert table.grad.abs().sum() > 0
     torch.testing.assert_close(table.grad, ref_table.grad, rtol=1e-5, atol=1e-5)
 

@@ -413,7 +413,9 @@ def test_seen_surface_uses_the_measured_depth_first(tiny_nerf, tiny_scene):
 
 
 @pytest.mark.parametrize("band_color", [False, True])
-def test_views_without_depth_render_around_the_estimate_when_asked(tiny_nerf, tiny_scene, band_color):
+def test_views_without_depth_render_around_the_estimate_when_asked(
+    tiny_nerf, tiny_scene, band_color
+):
     """``render_novel_estimate``: every ray of a view without depth renders in the band around
     its estimated surface and its labels agree with the full march; with the option off the
     render is the march itself (bit-identical to the explicit sampler). Colour is not compared:

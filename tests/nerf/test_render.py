@@ -303,7 +303,9 @@ def test_views_with_depth_take_colour_from_the_full_ray_and_labels_from_the_band
     assert rendered_psnr > band_psnr + 3.0, (rendered_psnr, band_psnr)
 
 
-def test_band_colour_is_normalised_and_falls_back_to_the_whole_ray_where_the_band_is_thin(tiny_scene):
+def test_band_colour_is_normalised_and_falls_back_to_the_whole_ray_where_the_band_is_thin(
+    tiny_scene,
+):
     """``render_band_color`` (the fast preset): colour and depth of a view with depth come
     from the band divided by its opacity; rays whose band holds too little opacity march
     the whole ray. The image is about as good as the whole-ray render, labels are the same."""
@@ -331,7 +333,13 @@ def test_band_colour_is_normalised_and_falls_back_to_the_whole_ray_where_the_ban
     # Which rays used the band: those whose band opacity reaches the threshold; the others
     # carry exactly the whole ray's colour.
     origins, dirs = image_rays(tiny_scene.intrinsics, f.pose)
-    raw = nerf.render_rays(origins, dirs, nerf.render_sampler(with_depth=True), torch.as_tensor(f.depth.reshape(-1)), semantics=False)
+    raw = nerf.render_rays(
+        origins,
+        dirs,
+        nerf.render_sampler(with_depth=True),
+        torch.as_tensor(f.depth.reshape(-1)),
+        semantics=False,
+    )
     used = (raw["opacity"] >= s.render_band_min_opacity).numpy()
     assert 0.2 < used.mean(), used.mean()  # the band carries most rays of a fitted field
     h, w = f.depth.shape

@@ -196,15 +196,26 @@ def test_adaptation_budgets_draw_and_step_as_measured_not_as_the_fusion_preset()
     fast = preset("fast").optim
     assert fast.ray_batches == "class_balanced" and fast.semantic_steps == 300
     assert fast.semantic_rays_per_step == 8192 and fast.semantic_lr_fraction == 0.1
-    for budget, draws, steps in ((cpu().nerf, "all", 0), (tiny().nerf, "all", 60), (paper().nerf, "per_view", 0)):
+    for budget, draws, steps in (
+        (cpu().nerf, "all", 0),
+        (tiny().nerf, "all", 60),
+        (paper().nerf, "per_view", 0),
+    ):
         o = nerf_config(budget).optim
         assert (o.ray_batches, o.semantic_steps) == (draws, steps)
         assert o.semantic_ray_batches is None and o.semantic_lr_fraction == 1.0
     balanced = NerfBudget(overrides=("optim.ray_batches=class_balanced",), semantic_steps=5)
     o = nerf_config(balanced).optim
-    assert (o.ray_batches, o.semantic_steps, o.semantic_rays_per_step) == ("class_balanced", 5, 1024)
+    assert (o.ray_batches, o.semantic_steps, o.semantic_rays_per_step) == (
+        "class_balanced",
+        5,
+        1024,
+    )
     later = NerfBudget(overrides=("optim.ray_batches=class_balanced", "optim.semantic_steps=7"))
-    assert (nerf_config(later).optim.ray_batches, nerf_config(later).optim.semantic_steps) == ("class_balanced", 7)
+    assert (nerf_config(later).optim.ray_batches, nerf_config(later).optim.semantic_steps) == (
+        "class_balanced",
+        7,
+    )
 
 
 def test_a_shortened_fit_keeps_its_share_of_semantic_steps(scene, monkeypatch):
@@ -218,12 +229,20 @@ def test_a_shortened_fit_keeps_its_share_of_semantic_steps(scene, monkeypatch):
     assert scaled_semantic_steps(fast, None) == 300 and scaled_semantic_steps(fast, 1500) == 300
     assert scaled_semantic_steps(fast, 150) == 30 and scaled_semantic_steps(fast, 1) == 1
     assert scaled_semantic_steps(fast, 0) == 0
-    args = build_parser().parse_args(["nerf", "fit", "S", "--out", "x.safetensors", "--steps", "150"])
+    args = build_parser().parse_args(
+        ["nerf", "fit", "S", "--out", "x.safetensors", "--steps", "150"]
+    )
     assert (fit_config(args).optim.steps, fit_config(args).optim.semantic_steps) == (150, 30)
     ran = []
-    monkeypatch.setattr(NerfTrainer, "semantic_steps", lambda self, n, **kw: ran.append((n, kw)) or 0.0)
+    monkeypatch.setattr(
+        NerfTrainer, "semantic_steps", lambda self, n, **kw: ran.append((n, kw)) or 0.0
+    )
     cfg = tiny_config(steps=100)
-    cfg.optim.semantic_steps, cfg.optim.semantic_rays_per_step, cfg.optim.semantic_lr_fraction = 40, 64, 0.1
+    cfg.optim.semantic_steps, cfg.optim.semantic_rays_per_step, cfg.optim.semantic_lr_fraction = (
+        40,
+        64,
+        0.1,
+    )
     fit_semantic_nerf(scene, "label-nyu40", cfg, steps=5, progress=False)
     assert len(ran) == 1 and ran[0][0] == 2
     assert (ran[0][1]["lr"], ran[0][1]["rays_per_step"]) == (pytest.approx(cfg.optim.lr * 0.1), 64)
@@ -231,8 +250,14 @@ def test_a_shortened_fit_keeps_its_share_of_semantic_steps(scene, monkeypatch):
     monkeypatch.undo()
     heard: list[str] = []
     cfg.optim.semantic_steps = 300  # 300 * 5 / 100 = 15 after the 5 fit steps
-    fit_semantic_nerf(scene, "label-nyu40", cfg, steps=5, progress=False, on_progress=lambda m, f: heard.append(m))
-    assert [m for m in heard if "semantic" in m] == ["NeRF semantic step 1/15", "NeRF semantic step 11/15", "NeRF semantic step 15/15"]
+    fit_semantic_nerf(
+        scene, "label-nyu40", cfg, steps=5, progress=False, on_progress=lambda m, f: heard.append(m)
+    )
+    assert [m for m in heard if "semantic" in m] == [
+        "NeRF semantic step 1/15",
+        "NeRF semantic step 11/15",
+        "NeRF semantic step 15/15",
+    ]
 
 
 def test_per_view_ray_batches_take_each_view_once_per_epoch(scene):

@@ -61,4 +61,3 @@ def make_pattern_scene(
 @pytest.fixture
 def pattern_scene() -> Scene:
     return make_pattern_scene()
-

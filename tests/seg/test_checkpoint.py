@@ -1,4 +1,5 @@
-"""Checkpoints: bit-identical round trip, a model card that needs nothing but the file, clear errors."""
+"""Checkpoints: bit-identical round trip, a model card that needs nothing but the file, clear
+errors."""
 
 from __future__ import annotations
 
@@ -128,10 +129,15 @@ def test_cards_over_the_size_cap_are_neither_written_nor_read(tmp_path, trained_
     text = json.dumps({**card.__dict__, "metrics": stuffed})
     save_file(tensors, str(path), metadata={"csa": text})
     for read in (read_model_card, load_checkpoint):
-        with pytest.raises(CSAInputError, match=f"{len(text)} bytes of JSON, more than the {MAX_CARD_BYTES}"):
+        with pytest.raises(
+            CSAInputError, match=f"{len(text)} bytes of JSON, more than the {MAX_CARD_BYTES}"
+        ):
             read(path)
     # just under the cap still loads
-    fits = {"padding": "x" * (MAX_CARD_BYTES - len(json.dumps({**card.__dict__, "metrics": {"padding": ""}})))}
+    fits = {
+        "padding": "x"
+        * (MAX_CARD_BYTES - len(json.dumps({**card.__dict__, "metrics": {"padding": ""}})))
+    }
     save_file(tensors, str(path), metadata={"csa": json.dumps({**card.__dict__, "metrics": fits})})
     assert read_model_card(path).metrics == fits
 

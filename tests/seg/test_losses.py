@@ -26,7 +26,8 @@ def test_loss_equals_hand_computed_cross_entropy():
 
 
 def test_single_softmax_not_double():
-    # Confident, correct logits must give a loss near 0; softmax applied twice could not go below log(1 + (C-1)/e).
+    # Confident, correct logits must give a loss near 0; softmax applied twice could not go below
+    # log(1 + (C-1)/e).
     logits = torch.zeros(1, 40, 1, 1)
     logits[0, 6] = 30.0
     labels = torch.tensor([[[7]]])

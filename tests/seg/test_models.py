@@ -46,7 +46,8 @@ def test_unknown_arch_and_bad_input_are_errors():
 def test_foreign_weights_load_backbone_by_name(tmp_path):
     torch.manual_seed(1)
     donor = build_model()
-    # A bare MobileNetV3 backbone as torchvision names it ("features.<i>...") plus a mismatching head.
+    # A bare MobileNetV3 backbone as torchvision names it ("features.<i>...") plus a mismatching
+    # head.
     backbone = {f"features.{k}": v.clone() for k, v in donor.net.backbone.state_dict().items()}
     backbone["classifier.3.weight"] = torch.zeros(1000, 1280)
     path = tmp_path / "backbone.safetensors"

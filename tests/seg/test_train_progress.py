@@ -38,7 +38,11 @@ def test_called_once_per_epoch_with_increasing_progress(train_set) -> None:
     )
     assert len(result.history) == 3
     assert [f for _, f in calls] == pytest.approx([1 / 3, 2 / 3, 1.0])
-    assert [m.split()[:2] for m, _ in calls] == [["epoch", "1/3"], ["epoch", "2/3"], ["epoch", "3/3"]]
+    assert [m.split()[:2] for m, _ in calls] == [
+        ["epoch", "1/3"],
+        ["epoch", "2/3"],
+        ["epoch", "3/3"],
+    ]
 
 
 def test_long_epochs_also_report_between_batches(train_set, monkeypatch) -> None:
@@ -68,14 +72,20 @@ def test_an_exception_in_the_first_epoch_stops_before_any_checkpoint(train_set, 
     torch.manual_seed(0)
     with pytest.raises(Stop) as raised:
         train_segmentation(
-            build_model(), train_set, TrainConfig(epochs=50, **FAST), checkpoint=ckpt, on_progress=cancel
+            build_model(),
+            train_set,
+            TrainConfig(epochs=50, **FAST),
+            checkpoint=ckpt,
+            on_progress=cancel,
         )
     assert raised.value is stop  # propagated unchanged, not wrapped
     assert calls == pytest.approx([1 / 50])  # one epoch of fifty ran
     assert list(tmp_path.iterdir()) == []  # no checkpoint, no temporary left behind
 
 
-def test_an_exception_later_stops_early_and_keeps_the_earlier_checkpoint(train_set, tmp_path) -> None:
+def test_an_exception_later_stops_early_and_keeps_the_earlier_checkpoint(
+    train_set, tmp_path
+) -> None:
     """With validation every improved epoch writes the checkpoint; epoch 3's never is."""
     ckpt = tmp_path / "best.safetensors"
     calls: list[float] = []

@@ -90,7 +90,13 @@ def test_flip_alone_mirrors_both_exactly():
 def test_a_changed_config_reaches_an_augmenter_already_used():
     image, labels = _pair()
     config = AugmentConfig(
-        hflip=0.0, rotation_deg=0.0, crop_scale=(1.0, 1.0), brightness=0, contrast=0, saturation=0, hue=0
+        hflip=0.0,
+        rotation_deg=0.0,
+        crop_scale=(1.0, 1.0),
+        brightness=0,
+        contrast=0,
+        saturation=0,
+        hue=0,
     )
     aug = JointAugment(config)
     out_img, out_lab = aug(image, labels)

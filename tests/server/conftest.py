@@ -38,7 +38,8 @@ both_backends = pytest.mark.parametrize("db_backend", BACKENDS, indirect=True, s
 
 @pytest.fixture(scope="session")
 def postgres() -> Iterator[PostgresDatabases]:
-    """The PostgreSQL server of this test run (see tests/pg.py); its databases are dropped at the end."""
+    """The PostgreSQL server of this test run (see tests/pg.py); its databases are dropped at the
+    end."""
     try:
         databases = open_postgres()
     except PostgresUnavailable as e:
@@ -56,7 +57,8 @@ def db_backend(request) -> str:
 
 
 def database_url(request: pytest.FixtureRequest, backend: str) -> str | None:
-    """A new empty database of ``backend``; None for SQLite (a file in the settings' data folder)."""
+    """A new empty database of ``backend``; None for SQLite (a file in the settings' data
+    folder)."""
     if backend == "sqlite":
         return None
     if backend == "postgresql":
@@ -118,7 +120,9 @@ def start_server(settings: Settings) -> LiveServer:
     """A real uvicorn server in a thread, bound to 127.0.0.1 on a free port."""
     port = free_port()
     app = create_app(settings)
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on"))
+    server = uvicorn.Server(
+        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
+    )
     thread = threading.Thread(target=server.run, name=f"uvicorn-{port}", daemon=True)
     thread.start()
     deadline = time.monotonic() + 30
@@ -155,7 +159,14 @@ def synth_scene(tmp_path_factory) -> Path:
     """A tiny procedural room: 8 frames of 40x30 with NYU40 ground truth."""
     from csa_core.data.synth import synthesize
 
-    (path,) = synthesize(tmp_path_factory.mktemp("synth"), scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=3)
+    (path,) = synthesize(
+        tmp_path_factory.mktemp("synth"),
+        scenes=1,
+        frames=8,
+        size=SCENE_SIZE,
+        family="office",
+        seed=3,
+    )
     return path
 
 

@@ -47,8 +47,13 @@ def runs(tmp_path_factory) -> Iterator[Runs]:
 
     data = tmp_path_factory.mktemp("equivalence")
     # PNG frames: the service stores the uploaded bytes, so both sides decode the same pixels.
-    (pre,) = synthesize(data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="apartment", seed=1)
-    targets = [synthesize(data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=s)[0] for s in (2, 3)]
+    (pre,) = synthesize(
+        data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="apartment", seed=1
+    )
+    targets = [
+        synthesize(data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=s)[0]
+        for s in (2, 3)
+    ]
     assert targets[0].name != targets[1].name
     live = start_server(test_settings(data / "service"))  # torch_threads=1, device cpu
     try:
@@ -58,7 +63,9 @@ def runs(tmp_path_factory) -> Iterator[Runs]:
                 time.sleep(0.05)
             for folder in (pre, *targets):
                 c.upload_scene_folder(folder)
-            base = c.wait_job(c.pretrain([pre.name], epochs=1, batch_size=4, name="base").id, timeout=300)
+            base = c.wait_job(
+                c.pretrain([pre.name], epochs=1, batch_size=4, name="base").id, timeout=300
+            )
             assert base.status == "succeeded", base.error
             network = c.download_model("base", data / "base.safetensors")
             models = []
@@ -74,9 +81,22 @@ def runs(tmp_path_factory) -> Iterator[Runs]:
         # worker: tests/conftest.py and test_settings).
         out = data / "cli"
         argv = ["adapt", *map(str, targets), "--model", str(network), "--pretrain-scenes", str(pre)]
-        argv += ["--out", str(out), "--preset", "tiny", "--seed", "0", "--device", "cpu", "--threads", "1"]
+        argv += [
+            "--out",
+            str(out),
+            "--preset",
+            "tiny",
+            "--seed",
+            "0",
+            "--device",
+            "cpu",
+            "--threads",
+            "1",
+        ]
         assert main(argv) == 0
-        yield Runs(live, pre, targets, models, metrics, dict(service_net.state_dict()), network, out)
+        yield Runs(
+            live, pre, targets, models, metrics, dict(service_net.state_dict()), network, out
+        )
     finally:
         live.stop()
 
@@ -92,7 +112,11 @@ def test_the_networks_are_bit_identical(runs: Runs) -> None:
     # BatchNorm statistics included: the service pooled them over both scenes as well.
     assert any(k.endswith("running_var") for k in cli)
     base, _ = load_checkpoint(runs.base)
-    changed = [k for k, t in base.state_dict().items() if t.is_floating_point() and not torch.equal(t, cli[k])]
+    changed = [
+        k
+        for k, t in base.state_dict().items()
+        if t.is_floating_point() and not torch.equal(t, cli[k])
+    ]
     assert len(changed) > len(cli) // 2  # both adapted the network, weights and statistics
 
 
@@ -119,7 +143,10 @@ def test_the_service_replayed_and_pooled_like_the_command_line(runs: Runs) -> No
 
     doc = json.loads((runs.cli_out / "results.json").read_text())
     first, second = (p.name for p in runs.scenes)
-    assert [s["replay"] for s in doc["steps"]] == [{}, {first: doc["config"]["replay"]["buffer_size"]}]
+    assert [s["replay"] for s in doc["steps"]] == [
+        {},
+        {first: doc["config"]["replay"]["buffer_size"]},
+    ]
     services = runs.live.services
     with session_scope(services.sessions) as s:
         versions = [s.get(ModelVersion, v.id) for v in runs.service_models]
@@ -127,6 +154,8 @@ def test_the_service_replayed_and_pooled_like_the_command_line(runs: Runs) -> No
         files = [dict(v.files) for v in versions]
     assert [st["replay"] for st in steps] == [st["replay"] for st in doc["steps"]]
     assert [st["decisions"] for st in steps] == [st["decisions"] for st in doc["steps"]]
-    memories = [BatchNormMemory.load(services.store.open_verified(f[BATCHNORM_FILE])) for f in files]
+    memories = [
+        BatchNormMemory.load(services.store.open_verified(f[BATCHNORM_FILE])) for f in files
+    ]
     assert [list(mem.scenes) for mem in memories] == [[first], [first, second]]
     assert [st["batchnorm_pooled"] for st in steps] == [[first], [first, second]]

@@ -13,11 +13,15 @@ import pytest
 from client import CSAClient, InvalidInput
 from server.archives import ArchiveLimits, UnsafeArchive, extract_archive
 
-LIMITS = ArchiveLimits(max_members=50, max_member_bytes=1_000_000, max_total_bytes=3_000_000, max_ratio=100.0)
+LIMITS = ArchiveLimits(
+    max_members=50, max_member_bytes=1_000_000, max_total_bytes=3_000_000, max_ratio=100.0
+)
 _names = itertools.count()
 
 
-def tar_with(path: Path, members: list[tuple[tarfile.TarInfo, bytes | None]], mode: str = "w") -> Path:
+def tar_with(
+    path: Path, members: list[tuple[tarfile.TarInfo, bytes | None]], mode: str = "w"
+) -> Path:
     with tarfile.open(path, mode) as tf:
         for info, data in members:
             if data is not None:
@@ -45,8 +49,14 @@ def link_info(name: str, target: str, kind: bytes) -> tarfile.TarInfo:
         ([(file_info("../evil.txt"), b"x")], "leaves the archive"),
         ([(file_info("color/../../evil.txt"), b"x")], "leaves the archive"),
         ([(file_info("/etc/evil.txt"), b"x")], "absolute path"),
-        ([(link_info("color/0.png", "/etc/passwd", tarfile.SYMTYPE), None)], "links are not allowed"),
-        ([(link_info("color/0.png", "pose/0.txt", tarfile.LNKTYPE), None)], "links are not allowed"),
+        (
+            [(link_info("color/0.png", "/etc/passwd", tarfile.SYMTYPE), None)],
+            "links are not allowed",
+        ),
+        (
+            [(link_info("color/0.png", "pose/0.txt", tarfile.LNKTYPE), None)],
+            "links are not allowed",
+        ),
         ([(link_info("dev", "", tarfile.CHRTYPE), None)], "only regular files"),
         ([(file_info(f"f{i}"), b"") for i in range(60)], "more than 50 entries"),
         ([(file_info("big"), b"\0" * 1_100_000)], "larger than"),
@@ -64,7 +74,9 @@ def test_unsafe_tar_archives_are_refused(tmp_path: Path, members, problem: str) 
 
 def test_tar_member_that_lies_about_its_size_is_cut_off(tmp_path: Path) -> None:
     # A gzip stream of zeros claiming to be small is still counted while it is copied.
-    archive = tar_with(tmp_path / "a.tar.gz", [(file_info(f"zeros{i}"), b"\0" * 999_999) for i in range(4)], "w:gz")
+    archive = tar_with(
+        tmp_path / "a.tar.gz", [(file_info(f"zeros{i}"), b"\0" * 999_999) for i in range(4)], "w:gz"
+    )
     assert archive.stat().st_size < 20_000  # a compressed bomb: tiny on the wire
     with pytest.raises(UnsafeArchive, match="unpacks to more than"):
         extract_archive(archive, tmp_path / "out", LIMITS)
@@ -79,7 +91,7 @@ def zip_with(path: Path, entries: list[tuple[zipfile.ZipInfo | str, bytes]]) -> 
 
 def symlink_zip_info(name: str) -> zipfile.ZipInfo:
     info = zipfile.ZipInfo(name)
-    info.external_attr = (0o120777 << 16)  # S_IFLNK
+    info.external_attr = 0o120777 << 16  # S_IFLNK
     return info
 
 
@@ -127,7 +139,9 @@ def pack_scene(folder: Path, dest: Path, fmt: str, extra: list[tuple[str, bytes]
 
 
 @pytest.mark.parametrize("fmt", ["zip", "tar.gz"])
-def test_archive_upload_stores_all_frames_once(client: CSAClient, synth_scene: Path, tmp_path: Path, fmt: str) -> None:
+def test_archive_upload_stores_all_frames_once(
+    client: CSAClient, synth_scene: Path, tmp_path: Path, fmt: str
+) -> None:
     name = f"arch-{next(_names)}"
     client.create_scene(name)
     archive = pack_scene(synth_scene, tmp_path / f"scene.{fmt}", fmt)
@@ -140,17 +154,23 @@ def test_archive_upload_stores_all_frames_once(client: CSAClient, synth_scene: P
     assert (scene.intrinsics.width, scene.intrinsics.height) == (40, 30)
 
 
-def test_archive_with_traversal_stores_nothing(client: CSAClient, synth_scene: Path, tmp_path: Path) -> None:
+def test_archive_with_traversal_stores_nothing(
+    client: CSAClient, synth_scene: Path, tmp_path: Path
+) -> None:
     name = f"arch-{next(_names)}"
     client.create_scene(name)
-    archive = pack_scene(synth_scene, tmp_path / "evil.tar.gz", "tar.gz", extra=[("../../escape.txt", b"owned")])
+    archive = pack_scene(
+        synth_scene, tmp_path / "evil.tar.gz", "tar.gz", extra=[("../../escape.txt", b"owned")]
+    )
     with pytest.raises(InvalidInput) as e:
         client.upload_archive(name, archive)
     assert e.value.field == "archive" and "leaves the archive" in str(e.value)
     assert client.scene(name).num_frames == 0
 
 
-def test_archive_with_one_bad_frame_stores_nothing(client: CSAClient, synth_scene: Path, tmp_path: Path) -> None:
+def test_archive_with_one_bad_frame_stores_nothing(
+    client: CSAClient, synth_scene: Path, tmp_path: Path
+) -> None:
     name = f"arch-{next(_names)}"
     client.create_scene(name)
     bad = tmp_path / "bad"
@@ -164,7 +184,9 @@ def test_archive_with_one_bad_frame_stores_nothing(client: CSAClient, synth_scen
     assert client.scene(name).num_frames == 0
 
 
-def test_archive_frames_with_infinite_pose_are_skipped(client: CSAClient, synth_scene: Path, tmp_path: Path) -> None:
+def test_archive_frames_with_infinite_pose_are_skipped(
+    client: CSAClient, synth_scene: Path, tmp_path: Path
+) -> None:
     name = f"arch-{next(_names)}"
     client.create_scene(name)
     lost = tmp_path / "lost"

@@ -33,16 +33,27 @@ def stored_files(data: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for d in blobs.iterdir() for p in d.iterdir()}
 
 
-def test_backup_then_restore_round_trips_a_services_data(synth_scene: Path, tmp_path: Path, capsys, monkeypatch) -> None:
+def test_backup_then_restore_round_trips_a_services_data(
+    synth_scene: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:
     for key in [k for k in os.environ if k.startswith("CSA_")]:
         monkeypatch.delenv(key)
     monkeypatch.chdir(tmp_path)  # no .env of the checkout
     source = tmp_path / "source"
-    live = start_server(test_settings(source, embedded_worker=False, api_keys=[]))  # a generated key
+    live = start_server(
+        test_settings(source, embedded_worker=False, api_keys=[])
+    )  # a generated key
     try:
         with live.client(api_key=(source / "api_key").read_text().strip()) as c:
             c.upload_scene_folder(synth_scene, scene="room")
-            extra = c.upload_frame("room", name="extra", **{**frame_parts(synth_scene, "0"), "pose": [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]})
+            extra = c.upload_frame(
+                "room",
+                name="extra",
+                **{
+                    **frame_parts(synth_scene, "0"),
+                    "pose": [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+                },
+            )
             model_sha = None
             if capabilities.available("seg"):
                 from csa_core.seg.checkpoint import save_checkpoint
@@ -52,7 +63,9 @@ def test_backup_then_restore_round_trips_a_services_data(synth_scene: Path, tmp_
                 model_sha = c.register_model(tmp_path / "m.safetensors", name="m").sha256
             before = {f.name: (f.id, f.pose) for f in c.frames("room")}
             # Taken while the service runs, as an operator would.
-            code, out, err = csa(["backup", str(tmp_path / "bk"), "--data-dir", str(source)], capsys)
+            code, out, err = csa(
+                ["backup", str(tmp_path / "bk"), "--data-dir", str(source)], capsys
+            )
             assert code == 0, err
             assert out.startswith("backed up the sqlite database and ")
     finally:
@@ -91,12 +104,16 @@ def test_backup_then_restore_round_trips_a_services_data(synth_scene: Path, tmp_
     stray = target / "artifacts" / "blobs" / "00" / ("0" * 64)
     stray.parent.mkdir(parents=True, exist_ok=True)
     stray.write_bytes(b"not in the backup")
-    code, _, err = csa(["restore", str(tmp_path / "bk"), "--data-dir", str(target), "--force"], capsys)
+    code, _, err = csa(
+        ["restore", str(tmp_path / "bk"), "--data-dir", str(target), "--force"], capsys
+    )
     assert code == 0, err
     assert not stray.exists() and stored_files(target) == stored_files(source)
 
 
-def test_restore_refuses_a_corrupt_or_unfinished_backup_before_touching_the_target(tmp_path: Path, capsys) -> None:
+def test_restore_refuses_a_corrupt_or_unfinished_backup_before_touching_the_target(
+    tmp_path: Path, capsys
+) -> None:
     source = tmp_path / "source"
     live = start_server(test_settings(source, embedded_worker=False))
     try:
@@ -117,7 +134,9 @@ def test_restore_refuses_a_corrupt_or_unfinished_backup_before_touching_the_targ
         check_backup(tmp_path / "bk")
 
 
-def test_backup_then_restore_on_postgresql(request, synth_scene: Path, tmp_path: Path, capsys) -> None:
+def test_backup_then_restore_on_postgresql(
+    request, synth_scene: Path, tmp_path: Path, capsys
+) -> None:
     """pg_dump in the snapshot the artifact list is read in, pg_restore into an empty database
     (and with --force over one that holds data); where the tests have a PostgreSQL server."""
     import shutil
@@ -133,7 +152,17 @@ def test_backup_then_restore_on_postgresql(request, synth_scene: Path, tmp_path:
         with live.client() as c:
             c.upload_scene_folder(synth_scene, scene="room")
             before = {f.name: (f.id, f.pose) for f in c.frames("room")}
-            code, out, err = csa(["backup", str(tmp_path / "bk"), "--data-dir", str(source), "--database-url", source_db], capsys)
+            code, out, err = csa(
+                [
+                    "backup",
+                    str(tmp_path / "bk"),
+                    "--data-dir",
+                    str(source),
+                    "--database-url",
+                    source_db,
+                ],
+                capsys,
+            )
             assert code == 0, err
             assert out.startswith("backed up the postgresql database and ")
     finally:
@@ -141,7 +170,10 @@ def test_backup_then_restore_on_postgresql(request, synth_scene: Path, tmp_path:
     assert check_backup(tmp_path / "bk")["database"] == "postgresql"
 
     target = tmp_path / "target"
-    code, _, err = csa(["restore", str(tmp_path / "bk"), "--data-dir", str(target), "--database-url", target_db], capsys)
+    code, _, err = csa(
+        ["restore", str(tmp_path / "bk"), "--data-dir", str(target), "--database-url", target_db],
+        capsys,
+    )
     assert code == 0, err
     assert stored_files(target) == stored_files(source)
     restored = start_server(test_settings(target, database_url=target_db, embedded_worker=False))
@@ -153,9 +185,23 @@ def test_backup_then_restore_on_postgresql(request, synth_scene: Path, tmp_path:
     finally:
         restored.stop()
     # The target holds data now: refused without --force, replaced whole with it.
-    code, _, err = csa(["restore", str(tmp_path / "bk"), "--data-dir", str(target), "--database-url", target_db], capsys)
+    code, _, err = csa(
+        ["restore", str(tmp_path / "bk"), "--data-dir", str(target), "--database-url", target_db],
+        capsys,
+    )
     assert code == 1 and "holds a database and artifact files" in err
-    code, _, err = csa(["restore", str(tmp_path / "bk"), "--data-dir", str(target), "--database-url", target_db, "--force"], capsys)
+    code, _, err = csa(
+        [
+            "restore",
+            str(tmp_path / "bk"),
+            "--data-dir",
+            str(target),
+            "--database-url",
+            target_db,
+            "--force",
+        ],
+        capsys,
+    )
     assert code == 0, err
     restored = start_server(test_settings(target, database_url=target_db, embedded_worker=False))
     try:

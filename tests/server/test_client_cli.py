@@ -12,7 +12,9 @@ from client.cli import main as cli_main
 from server import capabilities
 from tests.server.conftest import API_KEY, SCENE_SIZE, LiveServer, start_server, test_settings
 
-pytestmark = pytest.mark.skipif(not capabilities.available("nerf"), reason="needs csa_core.nerf for a real fit")
+pytestmark = pytest.mark.skipif(
+    not capabilities.available("nerf"), reason="needs csa_core.nerf for a real fit"
+)
 
 TINY_NERF = {"steps": 60, "rays_per_step": 256, "occupancy_resolution": 32, "log2_table_size": 12}
 
@@ -22,7 +24,9 @@ def service(tmp_path_factory) -> Iterator[LiveServer]:
     from csa_core.data.synth import synthesize
 
     data = tmp_path_factory.mktemp("client-cli")
-    (room,) = synthesize(data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=4)
+    (room,) = synthesize(
+        data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=4
+    )
     live = start_server(test_settings(data / "service"))
     try:
         with live.client() as c:
@@ -30,7 +34,10 @@ def service(tmp_path_factory) -> Iterator[LiveServer]:
             while c.health().workers_alive < 1 and time.monotonic() < deadline:
                 time.sleep(0.05)
             c.upload_scene_folder(room)
-            fit = c.wait_job(c.create_job("fit_nerf", scene=room.name, labels="ground_truth", **TINY_NERF).id, timeout=300)
+            fit = c.wait_job(
+                c.create_job("fit_nerf", scene=room.name, labels="ground_truth", **TINY_NERF).id,
+                timeout=300,
+            )
             assert fit.status == "succeeded", fit.error
         yield live
     finally:
@@ -58,6 +65,13 @@ def test_memory_prints_the_quality_as_fields(service: LiveServer, capsys) -> Non
     code, out = run(service, capsys, "memory")
     assert code == 0 and "{" not in out and '"' not in out  # no JSON in the table
     q = entry.quality
-    assert f"val psnr {q['val_psnr']:.1f} dB" in out and f"train psnr {q['train_psnr']:.1f} dB" in out
-    assert f"val depth mae {q['val_depth_mae_m']:.3f} m" in out and f"steps {TINY_NERF['steps']}" in out
-    assert f"fit {q['fit_seconds']:.1f} s" in out and entry.scene in out and entry.labels_source in out
+    assert (
+        f"val psnr {q['val_psnr']:.1f} dB" in out and f"train psnr {q['train_psnr']:.1f} dB" in out
+    )
+    assert (
+        f"val depth mae {q['val_depth_mae_m']:.3f} m" in out
+        and f"steps {TINY_NERF['steps']}" in out
+    )
+    assert (
+        f"fit {q['fit_seconds']:.1f} s" in out and entry.scene in out and entry.labels_source in out
+    )

@@ -37,9 +37,23 @@ def lineage(api_server, tmp_path_factory) -> str:
         for i, model_name in enumerate(SCORES):
             blob.write_bytes(f"weights of {model_name}".encode())
             adapted = None if model_name == "root" else scenes[f"s{i - 1}"]
-            m = register_checkpoint(s, services.store, blob, name=f"cm-{model_name}", lineage="cm", arch="test", parent_id=parent, adapted_scene_id=adapted, make_current=False)
+            m = register_checkpoint(
+                s,
+                services.store,
+                blob,
+                name=f"cm-{model_name}",
+                lineage="cm",
+                arch="test",
+                parent_id=parent,
+                adapted_scene_id=adapted,
+                make_current=False,
+            )
             for scene_name, miou in SCORES[model_name].items():
-                s.add(Evaluation(model_version_id=m.id, scene_id=scenes[scene_name], split="val", miou=miou))
+                s.add(
+                    Evaluation(
+                        model_version_id=m.id, scene_id=scenes[scene_name], split="val", miou=miou
+                    )
+                )
             parent = m.id
         s.commit()
     return "cm"
@@ -53,7 +67,9 @@ def test_r_matrix_and_scores_match_the_core_metrics(client: CSAClient, lineage: 
     assert m.R == [[0.50, 0.28, None], [0.45, 0.52, 0.26], [0.44, 0.49, 0.55]]
     assert m.missing == []
     nan = float("nan")
-    want = continual_metrics([[0.50, 0.28, nan], [0.45, 0.52, 0.26], [0.44, 0.49, 0.55]], [0.30, 0.25, 0.20])
+    want = continual_metrics(
+        [[0.50, 0.28, nan], [0.45, 0.52, 0.26], [0.44, 0.49, 0.55]], [0.30, 0.25, 0.20]
+    )
     for key in ("acc", "a", "fwt", "bwt"):
         assert math.isclose(getattr(m, key), want[key])
     assert math.isclose(m.bwt, ((0.44 - 0.50) + (0.49 - 0.52)) / 2)
@@ -74,6 +90,10 @@ def test_models_show_their_lineage(client: CSAClient, lineage: str) -> None:
     assert models["cm-step1"].parent_id == models["cm-step0"].id
     assert models["cm-step0"].children == [models["cm-step1"].id]
     assert models["cm-step2"].adapted_scene == "cm-s2"
-    assert models["cm-step2"].evaluations == {"cm-s0/val": 0.44, "cm-s1/val": 0.49, "cm-s2/val": 0.55}
+    assert models["cm-step2"].evaluations == {
+        "cm-s0/val": 0.44,
+        "cm-s1/val": 0.49,
+        "cm-s2/val": 0.55,
+    }
     assert client.set_current_model("cm-step2").is_current
     assert client.model("current").name == "cm-step2"

@@ -40,7 +40,9 @@ from tests.server.conftest import (
 )
 from tests.server.test_worker_crash import REPO, start_api, wait_for
 
-pytestmark = pytest.mark.skipif(not capabilities.available("seg"), reason="model uploads need csa_core.seg")
+pytestmark = pytest.mark.skipif(
+    not capabilities.available("seg"), reason="model uploads need csa_core.seg"
+)
 
 TINY_NERF = {"steps": 30, "rays_per_step": 128, "occupancy_resolution": 16, "log2_table_size": 10}
 SIGKILLED = -9
@@ -48,8 +50,18 @@ SIGKILLED = -9
 
 def csa(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     """A ``csa`` command in its own process, with no CSA_* settings of this environment."""
-    env = {**{k: v for k, v in os.environ.items() if not k.startswith("CSA_")}, "PYTHONPATH": str(REPO)}
-    return subprocess.run([sys.executable, "-m", "csa_core.cli.main", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    env = {
+        **{k: v for k, v in os.environ.items() if not k.startswith("CSA_")},
+        "PYTHONPATH": str(REPO),
+    }
+    return subprocess.run(
+        [sys.executable, "-m", "csa_core.cli.main", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def found(report: str) -> dict[str, int]:
@@ -68,21 +80,27 @@ class Chain:
         self.port = 0
 
     def db_args(self) -> list[str]:
-        return ["--data-dir", str(self.data)] + (["--database-url", self.db_url] if self.db_url else [])
+        return ["--data-dir", str(self.data)] + (
+            ["--database-url", self.db_url] if self.db_url else []
+        )
 
     def start(self, fault: str | None = None) -> CSAClient:
         self.port = free_port()
         extra = {"CSA_FAULT_POINT": fault} if fault else {}
         self.proc = start_api(self.data, self.port, self.log, self.db_url, extra)
         c = CSAClient(f"http://127.0.0.1:{self.port}", api_key=API_KEY, timeout=120)
-        wait_for(lambda: c.health().workers_alive == 1, 120, "the API to start", self.proc, self.log)
+        wait_for(
+            lambda: c.health().workers_alive == 1, 120, "the API to start", self.proc, self.log
+        )
         return c
 
     def killed(self) -> None:
         """The server died at its fault point (SIGKILL), not of something else."""
         assert self.proc is not None
         code = self.proc.wait(timeout=120)
-        assert code == SIGKILLED, f"the API exited with {code}, not by SIGKILL: {self.log.read_text()[-2000:]}"
+        assert code == SIGKILLED, (
+            f"the API exited with {code}, not by SIGKILL: {self.log.read_text()[-2000:]}"
+        )
 
     def stop(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
@@ -91,7 +109,9 @@ class Chain:
 
     def nerfs(self) -> int:
         """NeRF checkpoints in the database (read directly: a killed job has no API to ask)."""
-        engine = make_engine(test_settings(self.data, database_url=self.db_url).resolved_database_url)
+        engine = make_engine(
+            test_settings(self.data, database_url=self.db_url).resolved_database_url
+        )
         try:
             with make_sessionmaker(engine)() as s:
                 return s.scalar(select(func.count()).select_from(NerfCheckpoint)) or 0
@@ -140,13 +160,19 @@ def frame_parts(room: Path, name: str) -> dict:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_killed_at_every_fault_point_loses_no_acknowledged_write_and_leaves_no_orphan(request, backend: str, tmp_path: Path) -> None:
+def test_killed_at_every_fault_point_loses_no_acknowledged_write_and_leaves_no_orphan(
+    request, backend: str, tmp_path: Path
+) -> None:
     from csa_core.data.synth import synthesize
     from csa_core.seg.checkpoint import save_checkpoint
     from csa_core.seg.models import build_model
 
-    (room,) = synthesize(tmp_path / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=5)
-    checkpoint = save_checkpoint(tmp_path / "m.safetensors", build_model()) and tmp_path / "m.safetensors"
+    (room,) = synthesize(
+        tmp_path / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=5
+    )
+    checkpoint = (
+        save_checkpoint(tmp_path / "m.safetensors", build_model()) and tmp_path / "m.safetensors"
+    )
     model_sha = hashlib.sha256(checkpoint.read_bytes()).hexdigest()
     chain = Chain(tmp_path, database_url(request, backend))
     try:
@@ -161,12 +187,16 @@ def test_killed_at_every_fault_point_loses_no_acknowledged_write_and_leaves_no_o
 
         # 2. An archive killed after three of its eight frames were stored (uncommitted).
         with chain.start("archive.frame_stored:3") as c:
-            assert [f.name for f in c.frames("room")] == ["0"] and c.frames("room")[0].id == first.id
+            assert [f.name for f in c.frames("room")] == ["0"] and c.frames("room")[
+                0
+            ].id == first.id
             with pytest.raises(CSAConnectionError):
                 c.upload_scene_folder(room, scene="room")
         chain.killed()
         # Frames 1 and 2 (frame 0 is stored already), and the archive's folder in the work dir.
-        chain.doctor({"blob files without an artifact row": 6, "scratch folders of dead jobs and uploads": 1})
+        chain.doctor(
+            {"blob files without an artifact row": 6, "scratch folders of dead jobs and uploads": 1}
+        )
 
         # 3. A model upload killed with its checkpoint half in the store: a temporary file.
         with chain.start("artifact.tmp_written:1") as c:
@@ -174,7 +204,9 @@ def test_killed_at_every_fault_point_loses_no_acknowledged_write_and_leaves_no_o
             with pytest.raises(CSAConnectionError):
                 c.register_model(checkpoint, name="m")
         chain.killed()
-        chain.doctor({"half-written temporary files": 1, "scratch folders of dead jobs and uploads": 1})
+        chain.doctor(
+            {"half-written temporary files": 1, "scratch folders of dead jobs and uploads": 1}
+        )
 
         # 4. A model upload killed with its checkpoint in the store, its row not committed.
         with chain.start("artifact.file_stored:1") as c:
@@ -182,7 +214,9 @@ def test_killed_at_every_fault_point_loses_no_acknowledged_write_and_leaves_no_o
             with pytest.raises(CSAConnectionError):
                 c.register_model(checkpoint, name="m")
         chain.killed()
-        chain.doctor({"blob files without an artifact row": 1, "scratch folders of dead jobs and uploads": 1})
+        chain.doctor(
+            {"blob files without an artifact row": 1, "scratch folders of dead jobs and uploads": 1}
+        )
 
         # 5. A NeRF fit killed between its computation and the registration of its outputs.
         with chain.start("job.computed:1") as c:
@@ -194,7 +228,9 @@ def test_killed_at_every_fault_point_loses_no_acknowledged_write_and_leaves_no_o
             wait_for(lambda: chain.proc.poll() is not None, 300, "the API to die at job.computed")
         chain.killed()
         assert chain.nerfs() == 0  # computed, not registered: nothing of it is visible
-        chain.doctor({"jobs running with no live owner": 1, "scratch folders of dead jobs and uploads": 1})
+        chain.doctor(
+            {"jobs running with no live owner": 1, "scratch folders of dead jobs and uploads": 1}
+        )
 
         # 6. The job, re-queued once by the repair, runs again and succeeds; a second fit is
         # killed inside the transaction that registers its NeRF (its blob is written).
@@ -204,11 +240,25 @@ def test_killed_at_every_fault_point_loses_no_acknowledged_write_and_leaves_no_o
             lines = [line.message for line in c.job_log(job.id, tail=1000)]
             assert sum(m.startswith("re-queued after attempt 1 of 2") for m in lines) == 1
             assert c.scene_nerf("room").id == done.result["nerf_id"]
-            second = c.create_job("fit_nerf", scene="room", labels="ground_truth", steps=40, **{k: v for k, v in TINY_NERF.items() if k != "steps"})
-            wait_for(lambda: chain.proc.poll() is not None, 300, "the API to die at job.registering")
+            second = c.create_job(
+                "fit_nerf",
+                scene="room",
+                labels="ground_truth",
+                steps=40,
+                **{k: v for k, v in TINY_NERF.items() if k != "steps"},
+            )
+            wait_for(
+                lambda: chain.proc.poll() is not None, 300, "the API to die at job.registering"
+            )
         chain.killed()
         assert chain.nerfs() == 1  # the first job's; the second's rows were never committed
-        chain.doctor({"blob files without an artifact row": 1, "jobs running with no live owner": 1, "scratch folders of dead jobs and uploads": 1})
+        chain.doctor(
+            {
+                "blob files without an artifact row": 1,
+                "jobs running with no live owner": 1,
+                "scratch folders of dead jobs and uploads": 1,
+            }
+        )
 
         # 7. No fault: everything answered is there and intact, and the second job finishes.
         with chain.start() as c:
@@ -245,7 +295,9 @@ def look(settings, repair: bool = False):
         engine.dispose()
 
 
-def test_a_full_disk_answers_507_and_leaves_nothing_half_written(synth_scene: Path, tmp_path: Path) -> None:
+def test_a_full_disk_answers_507_and_leaves_nothing_half_written(
+    synth_scene: Path, tmp_path: Path
+) -> None:
     """Writes into a full data folder (``OSError(ENOSPC)`` from the fault point at the artifact
     store's write) are answered 507 naming the cause; no row, no temporary file and no upload
     folder is left, only whole blobs of the failed request, which the sweep (or csa doctor)
@@ -261,8 +313,14 @@ def test_a_full_disk_answers_507_and_leaves_nothing_half_written(synth_scene: Pa
         with live.client() as c:
             c.create_scene("full")
             attempts = [
-                ("artifact.write:2:enospc", lambda: c.upload_frame("full", name="0", **frame_parts(synth_scene, "0"))),
-                ("artifact.write:1:enospc", lambda: c.upload_scene_folder(synth_scene, scene="full")),
+                (
+                    "artifact.write:2:enospc",
+                    lambda: c.upload_frame("full", name="0", **frame_parts(synth_scene, "0")),
+                ),
+                (
+                    "artifact.write:1:enospc",
+                    lambda: c.upload_scene_folder(synth_scene, scene="full"),
+                ),
                 ("artifact.write:1:enospc", lambda: c.register_model(checkpoint, name="m")),
             ]
             for fault, write in attempts:
@@ -274,7 +332,9 @@ def test_a_full_disk_answers_507_and_leaves_nothing_half_written(synth_scene: Pa
                     faults.configure(None)
                 err = refused.value
                 assert (err.status, err.code) == (507, "insufficient_storage"), str(err)
-                assert "data folder is full (No space left on device)" in str(err) and str(tmp_path) not in str(err)
+                assert "data folder is full (No space left on device)" in str(err) and str(
+                    tmp_path
+                ) not in str(err)
                 assert c.frames("full") == [] and c.models() == []
                 assert list((settings.resolved_artifact_dir / "tmp").iterdir()) == []
                 assert list(settings.resolved_work_dir.iterdir()) == []
@@ -307,7 +367,9 @@ def test_postgresql_restarted_under_traffic_the_service_recovers_by_itself(tmp_p
     databases = PostgresDatabases(pg.url, server=pg)
     live = None
     try:
-        live = start_server(test_settings(tmp_path / "data", database_url=databases.create(), embedded_worker=False))
+        live = start_server(
+            test_settings(tmp_path / "data", database_url=databases.create(), embedded_worker=False)
+        )
         seen: list[tuple[str, int | str]] = []  # (phase, status or error)
         phase = ["before"]
         stop = threading.Event()
@@ -330,13 +392,30 @@ def test_postgresql_restarted_under_traffic_the_service_recovers_by_itself(tmp_p
         reader.start()
         wait_for(lambda: len(seen) >= 5, 60, "reads before the restart")
         phase[0] = "down"
-        stopped = pg._run(str(pg.bin_dir / "pg_ctl"), "-D", "data", "-m", "fast", "-w", "stop", timeout=60)
+        stopped = pg._run(
+            str(pg.bin_dir / "pg_ctl"), "-D", "data", "-m", "fast", "-w", "stop", timeout=60
+        )
         assert stopped.returncode == 0, stopped.stderr
-        wait_for(lambda: sum(p == "down" for p, _ in seen) >= 5, 60, "reads while the database is down")
-        started = pg._run(str(pg.bin_dir / "pg_ctl"), "-D", "data", "-l", "server.log", "-w", "restart", timeout=60)
+        wait_for(
+            lambda: sum(p == "down" for p, _ in seen) >= 5, 60, "reads while the database is down"
+        )
+        started = pg._run(
+            str(pg.bin_dir / "pg_ctl"),
+            "-D",
+            "data",
+            "-l",
+            "server.log",
+            "-w",
+            "restart",
+            timeout=60,
+        )
         assert started.returncode == 0, started.stderr
         phase[0] = "back"
-        wait_for(lambda: any(p == "back" and s == 200 for p, s in seen), 60, "a read to succeed after the restart")
+        wait_for(
+            lambda: any(p == "back" and s == 200 for p, s in seen),
+            60,
+            "a read to succeed after the restart",
+        )
         first_ok = next(i for i, (p, s) in enumerate(seen) if p == "back" and s == 200)
         wait_for(lambda: len(seen) >= first_ok + 20, 60, "more reads after the restart")
         stop.set()
@@ -370,7 +449,9 @@ def test_fault_points_are_off_unless_named_and_a_bad_setting_is_refused_naming_i
     ]:
         with pytest.raises(ValueError) as refused:
             faults.parse(value)
-        assert str(refused.value).startswith(f"CSA_FAULT_POINT={value!r}: ") and problem in str(refused.value)
+        assert str(refused.value).startswith(f"CSA_FAULT_POINT={value!r}: ") and problem in str(
+            refused.value
+        )
     try:
         faults.configure("frame.blobs_written:2:enospc")
         faults.point("frame.blobs_written")  # the first hit passes

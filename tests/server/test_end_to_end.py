@@ -36,8 +36,12 @@ pytestmark = both_backends
 # A NeRF fit small enough for a test: few rays and steps, a small table and occupancy grid.
 TINY_NERF = {"steps": 60, "rays_per_step": 256, "occupancy_resolution": 32, "log2_table_size": 12}
 
-needs_seg = pytest.mark.skipif(not capabilities.available("seg"), reason="csa_core.seg is not available in this build")
-needs_nerf = pytest.mark.skipif(not capabilities.available("nerf"), reason="csa_core.nerf is not available in this build")
+needs_seg = pytest.mark.skipif(
+    not capabilities.available("seg"), reason="csa_core.seg is not available in this build"
+)
+needs_nerf = pytest.mark.skipif(
+    not capabilities.available("nerf"), reason="csa_core.nerf is not available in this build"
+)
 
 
 def decode(png: bytes) -> np.ndarray:
@@ -59,9 +63,15 @@ def service(request, tmp_path_factory, db_backend: str) -> Iterator[Service]:
     from csa_core.data.synth import synthesize
 
     data = tmp_path_factory.mktemp("e2e")
-    (pre,) = synthesize(data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="apartment", seed=1)
-    (target,) = synthesize(data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=2)
-    live = start_server(test_settings(data / "service", database_url=database_url(request, db_backend)))
+    (pre,) = synthesize(
+        data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="apartment", seed=1
+    )
+    (target,) = synthesize(
+        data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=2
+    )
+    live = start_server(
+        test_settings(data / "service", database_url=database_url(request, db_backend))
+    )
     with live.client() as client:
         deadline = time.monotonic() + 10
         while client.health().workers_alive < 1 and time.monotonic() < deadline:
@@ -129,7 +139,9 @@ def test_predict_returns_a_nyu40_label_map(uploaded: Service, pretrained) -> Non
 
 
 @needs_seg
-def test_evaluate_fills_scores_and_model_download_matches_its_checksum(uploaded: Service, pretrained, tmp_path: Path) -> None:
+def test_evaluate_fills_scores_and_model_download_matches_its_checksum(
+    uploaded: Service, pretrained, tmp_path: Path
+) -> None:
     c = uploaded.client
     job = c.wait_job(c.evaluate(scenes=[uploaded.target_scene.name]).id, timeout=120)
     miou = job.result["miou"]
@@ -144,7 +156,9 @@ def test_evaluate_fills_scores_and_model_download_matches_its_checksum(uploaded:
 
 @needs_seg
 @needs_nerf
-def test_fit_nerf_on_predictions_fills_the_memory_bank_and_renders(uploaded: Service, pretrained) -> None:
+def test_fit_nerf_on_predictions_fills_the_memory_bank_and_renders(
+    uploaded: Service, pretrained
+) -> None:
     c = uploaded.client
     scene = uploaded.target_scene.name
     job = c.create_job("fit_nerf", scene=scene, labels="predictions", **TINY_NERF)
@@ -156,28 +170,40 @@ def test_fit_nerf_on_predictions_fills_the_memory_bank_and_renders(uploaded: Ser
     (entry,) = [e for e in bank.entries if e.scene == scene]
     assert entry.size_bytes > 0 and bank.total_bytes >= entry.size_bytes
     assert entry.labels_source == "predictions:base"
-    assert entry.quality["val_views"] == 2 and entry.quality["val_psnr"] > 12.0  # a blank render scores ~3 dB
+    assert (
+        entry.quality["val_views"] == 2 and entry.quality["val_psnr"] > 12.0
+    )  # a blank render scores ~3 dB
     assert c.scene(scene).has_nerf
 
     pose = np.loadtxt(uploaded.target_scene / "pose" / "1.txt")
     view = c.render(scene, pose.tolist(), channels=["color", "depth", "labels", "labels_color"])
     assert (view.width, view.height) == SCENE_SIZE and view.nerf_id == entry.id
-    color, depth, labels = decode(view.images["color"]), decode(view.images["depth"]), decode(view.images["labels"])
+    color, depth, labels = (
+        decode(view.images["color"]),
+        decode(view.images["depth"]),
+        decode(view.images["labels"]),
+    )
     assert color.shape == (30, 40, 3) and depth.dtype == np.uint16 and labels.dtype == np.uint8
     assert depth.max() > 0 and labels.min() >= 1 and labels.max() <= 40
     half = {"fx": 15.0, "fy": 15.0, "cx": 9.5, "cy": 7.0, "width": 20, "height": 15}
-    assert decode(c.render(scene, pose.tolist(), intrinsics=half, channels=["depth"]).images["depth"]).shape == (15, 20)
+    assert decode(
+        c.render(scene, pose.tolist(), intrinsics=half, channels=["depth"]).images["depth"]
+    ).shape == (15, 20)
 
 
 def test_adapt_answers_501_when_the_core_lacks_it(uploaded: Service, monkeypatch, capsys) -> None:
     """A build without csa_core.adapt (simulated here: the server runs in this process)."""
-    missing = capabilities.Capability("adapt", ("csa_core.adapt:not_in_this_build",), "continual adaptation")
+    missing = capabilities.Capability(
+        "adapt", ("csa_core.adapt:not_in_this_build",), "continual adaptation"
+    )
     monkeypatch.setitem(capabilities.CAPABILITIES, "adapt", missing)
     with pytest.raises(NotAvailable) as e:
         uploaded.client.adapt(uploaded.target_scene.name)
     assert e.value.status == 501 and "not available in this build" in str(e.value)
     kinds = {k.kind: k for k in uploaded.client.job_kinds()}
-    assert not kinds["adapt"].available and "csa_core.adapt.not_in_this_build" in kinds["adapt"].reason
+    assert (
+        not kinds["adapt"].available and "csa_core.adapt.not_in_this_build" in kinds["adapt"].reason
+    )
     assert uploaded.client.health().capabilities["adapt"] is not None
     base = ["--url", uploaded.live.url, "--api-key", API_KEY]
     assert cli_main([*base, "adapt", "--scene", uploaded.target_scene.name, "--wait"]) == 1
@@ -195,7 +221,10 @@ def test_continual_metrics_of_a_lineage_without_steps(uploaded: Service, pretrai
 def test_prometheus_metrics(uploaded: Service) -> None:
     text = uploaded.client.prometheus_metrics()
     assert "# TYPE csa_http_requests_total counter" in text
-    assert 'csa_http_requests_total{method="POST",route="/api/v1/scenes/{scene_ref}/archive",status="200"}' in text
+    assert (
+        'csa_http_requests_total{method="POST",route="/api/v1/scenes/{scene_ref}/archive",status="200"}'
+        in text
+    )
     assert "csa_frames 16" in text and "csa_workers_alive 1" in text
 
 
@@ -207,31 +236,64 @@ def test_command_line_client(uploaded: Service, pretrained, tmp_path: Path, caps
     assert cli_main([*base, "models"]) == 0
     assert "base" in capsys.readouterr().out
     out = tmp_path / "pred.png"
-    assert cli_main([*base, "predict", str(uploaded.target_scene / "color" / "3.png"), "--out", str(out)]) == 0
+    assert (
+        cli_main(
+            [*base, "predict", str(uploaded.target_scene / "color" / "3.png"), "--out", str(out)]
+        )
+        == 0
+    )
     assert decode(out.read_bytes()).shape == (30, 40)
     assert cli_main([*base, "jobs"]) == 0 and "pretrain" in capsys.readouterr().out
     assert cli_main([*base, "metrics"]) == 0
     assert cli_main([*base, "--api-key", "wrong", "models"]) == 1
     assert "HTTP 401 unauthorized: invalid API key" in capsys.readouterr().err
-    if capabilities.available("nerf") and uploaded.client.scene(uploaded.target_scene.name).has_nerf:
-        assert cli_main([*base, "render", "--scene", uploaded.target_scene.name, "--pose", str(uploaded.target_scene / "pose" / "2.txt"), "--out", str(tmp_path / "view")]) == 0
-        assert sorted(p.name for p in (tmp_path / "view").iterdir()) == ["color.png", "depth.png", "labels.png"]
+    if (
+        capabilities.available("nerf")
+        and uploaded.client.scene(uploaded.target_scene.name).has_nerf
+    ):
+        assert (
+            cli_main(
+                [
+                    *base,
+                    "render",
+                    "--scene",
+                    uploaded.target_scene.name,
+                    "--pose",
+                    str(uploaded.target_scene / "pose" / "2.txt"),
+                    "--out",
+                    str(tmp_path / "view"),
+                ]
+            )
+            == 0
+        )
+        assert sorted(p.name for p in (tmp_path / "view").iterdir()) == [
+            "color.png",
+            "depth.png",
+            "labels.png",
+        ]
 
 
 @needs_seg
 def test_progress_stream_is_server_sent_events(uploaded: Service, pretrained) -> None:
     import httpx
 
-    with httpx.Client(base_url=uploaded.live.url, headers={"X-API-Key": API_KEY}, timeout=10) as http:
+    with httpx.Client(
+        base_url=uploaded.live.url, headers={"X-API-Key": API_KEY}, timeout=10
+    ) as http:
         with http.stream("GET", f"/api/v1/jobs/{pretrained.job_id}/events") as r:
-            assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
+            assert r.status_code == 200 and r.headers["content-type"].startswith(
+                "text/event-stream"
+            )
             lines = [line for line in r.iter_lines() if line]
     events = [line.split(": ", 1)[1] for line in lines if line.startswith("event:")]
     assert events == ["progress", "end"]
     assert '"status":"succeeded"' in lines[lines.index("event: progress") + 1]
 
 
-@pytest.mark.skipif(not capabilities.available("adapt"), reason="the adapt job needs csa_core.adapt, not in this build")
+@pytest.mark.skipif(
+    not capabilities.available("adapt"),
+    reason="the adapt job needs csa_core.adapt, not in this build",
+)
 def test_adapt_is_a_continual_step(uploaded: Service, pretrained) -> None:
     """Last in this file: it adds a step to the lineage the tests above see without one."""
     c = uploaded.client

@@ -60,7 +60,12 @@ def labels(value: int = 3) -> bytes:
     return png(np.full((H, W), value, np.uint8))
 
 
-SCENE = {"color/0.png": color(), "depth/0.png": depth(), "pose/0.txt": POSE.encode(), "intrinsic/intrinsic_color.txt": K.encode()}
+SCENE = {
+    "color/0.png": color(),
+    "depth/0.png": depth(),
+    "pose/0.txt": POSE.encode(),
+    "intrinsic/intrinsic_color.txt": K.encode(),
+}
 
 
 @pytest.fixture
@@ -119,13 +124,22 @@ def zip_of(entries: list[tuple[str, bytes]], compression: int = zipfile.ZIP_STOR
 
 
 def upload_archive(http: httpx.Client, scene: str, data: bytes) -> httpx.Response:
-    return http.post(f"/api/v1/scenes/{scene}/archive", files={"archive": ("scene.bin", data, "application/octet-stream")})
+    return http.post(
+        f"/api/v1/scenes/{scene}/archive",
+        files={"archive": ("scene.bin", data, "application/octet-stream")},
+    )
 
 
-def upload_frame(http: httpx.Client, scene: str, name: str, **parts: bytes | None) -> httpx.Response:
+def upload_frame(
+    http: httpx.Client, scene: str, name: str, **parts: bytes | None
+) -> httpx.Response:
     files = {"color": color(), "depth": depth(), "pose": POSE.encode(), "intrinsics": K.encode()}
     files.update(parts)
-    return http.post(f"/api/v1/scenes/{scene}/frames", files={k: (k, v, "application/octet-stream") for k, v in files.items() if v is not None}, data={"name": name})
+    return http.post(
+        f"/api/v1/scenes/{scene}/frames",
+        files={k: (k, v, "application/octet-stream") for k, v in files.items() if v is not None},
+        data={"name": name},
+    )
 
 
 # --- archives ------------------------------------------------------------------------------
@@ -134,15 +148,35 @@ def upload_frame(http: httpx.Client, scene: str, name: str, **parts: bytes | Non
 @pytest.mark.parametrize(
     ("extra", "field", "problem"),
     [
-        ([("color/1.png", None), ("depth/1.png", depth()), ("pose/1.txt", POSE.encode())], "archive:color/1.png", "is a folder"),
-        ([("color/0.jpg", jpg(np.zeros((H, W, 3), np.uint8)))], "archive:color/0.png", "two colour images (0.jpg and 0.png)"),
+        (
+            [("color/1.png", None), ("depth/1.png", depth()), ("pose/1.txt", POSE.encode())],
+            "archive:color/1.png",
+            "is a folder",
+        ),
+        (
+            [("color/0.jpg", jpg(np.zeros((H, W, 3), np.uint8)))],
+            "archive:color/0.png",
+            "two colour images (0.jpg and 0.png)",
+        ),
         ([("pose/0.txt", None)], "archive:pose/0.txt", "is a folder"),
-        ([("intrinsic/intrinsic_depth.txt", None)], "archive:intrinsic/intrinsic_depth.txt", "is a folder"),
+        (
+            [("intrinsic/intrinsic_depth.txt", None)],
+            "archive:intrinsic/intrinsic_depth.txt",
+            "is a folder",
+        ),
         ([("label-nyu40/0.png", None)], "archive:label-nyu40/0.png", "is a folder"),
     ],
-    ids=["colour-folder", "two-colour-images", "pose-folder", "depth-intrinsics-folder", "labels-folder"],
+    ids=[
+        "colour-folder",
+        "two-colour-images",
+        "pose-folder",
+        "depth-intrinsics-folder",
+        "labels-folder",
+    ],
 )
-def test_archive_entries_that_are_not_one_file_per_part_are_refused(http: httpx.Client, extra, field: str, problem: str) -> None:
+def test_archive_entries_that_are_not_one_file_per_part_are_refused(
+    http: httpx.Client, extra, field: str, problem: str
+) -> None:
     """A colour folder named like an image used to end in a 500 (StopIteration); two images for
     one frame or a part that is a folder were picked or skipped without a word."""
     entries = [(n, d) for n, d in SCENE.items() if not any(n == e for e, _ in extra)] + extra
@@ -153,7 +187,10 @@ def test_archive_entries_that_are_not_one_file_per_part_are_refused(http: httpx.
 
 def test_archive_colour_suffixes_in_any_case_are_read(http: httpx.Client) -> None:
     """``0.Png`` counts as a frame (as the scene reader counts it) and is stored, not a 500."""
-    entries = [("color/0.Png", SCENE["color/0.png"]), *[(n, d) for n, d in SCENE.items() if not n.startswith("color/")]]
+    entries = [
+        ("color/0.Png", SCENE["color/0.png"]),
+        *[(n, d) for n, d in SCENE.items() if not n.startswith("color/")],
+    ]
     scene = new_scene(http)
     r = upload_archive(http, scene, tar_of(entries))
     assert r.status_code == 200 and r.json()["added"] == ["0"], r.text[:300]
@@ -162,14 +199,33 @@ def test_archive_colour_suffixes_in_any_case_are_read(http: httpx.Client) -> Non
 @pytest.mark.parametrize(
     ("archive", "problem"),
     [
-        (lambda: zip_of([*SCENE.items(), ("color/0.png", color(seed=7))]), "'color/0.png': the archive holds this path twice"),
-        (lambda: tar_of([*SCENE.items(), ("color/0.png", color(seed=7))]), "'color/0.png': the archive holds this path twice"),
-        (lambda: tar_of([*SCENE.items(), ("pose/0.txt/x", b"1")]), "'pose/0.txt' is a file in this archive, not a folder"),
-        (lambda: tar_of([("color", None), *SCENE.items(), ("color", b"junk")]), "'color': the archive holds this path as a folder and as a file"),
+        (
+            lambda: zip_of([*SCENE.items(), ("color/0.png", color(seed=7))]),
+            "'color/0.png': the archive holds this path twice",
+        ),
+        (
+            lambda: tar_of([*SCENE.items(), ("color/0.png", color(seed=7))]),
+            "'color/0.png': the archive holds this path twice",
+        ),
+        (
+            lambda: tar_of([*SCENE.items(), ("pose/0.txt/x", b"1")]),
+            "'pose/0.txt' is a file in this archive, not a folder",
+        ),
+        (
+            lambda: tar_of([("color", None), *SCENE.items(), ("color", b"junk")]),
+            "'color': the archive holds this path as a folder and as a file",
+        ),
     ],
-    ids=["zip-same-name-twice", "tar-same-name-twice", "tar-file-then-folder", "tar-folder-then-file"],
+    ids=[
+        "zip-same-name-twice",
+        "tar-same-name-twice",
+        "tar-file-then-folder",
+        "tar-folder-then-file",
+    ],
 )
-def test_archives_naming_one_path_twice_are_refused(http: httpx.Client, archive, problem: str) -> None:
+def test_archives_naming_one_path_twice_are_refused(
+    http: httpx.Client, archive, problem: str
+) -> None:
     """Which of two same-named entries wins differs between tools: the upload is refused
     instead of silently keeping the last one (or failing on the server's own file system)."""
     scene = new_scene(http)
@@ -188,7 +244,10 @@ def corrupt(data: bytes, start: int, count: int, seed: int = 0) -> bytes:
 
 def deflated_zip_with_bad_stream() -> bytes:
     """A zip whose first member's deflate stream is garbage (zlib raises, not zipfile)."""
-    data = zip_of([("color/0.png", random.Random(1).randbytes(3000) + b"a" * 3000), *list(SCENE.items())[1:]], zipfile.ZIP_DEFLATED)
+    data = zip_of(
+        [("color/0.png", random.Random(1).randbytes(3000) + b"a" * 3000), *list(SCENE.items())[1:]],
+        zipfile.ZIP_DEFLATED,
+    )
     start = 30 + len("color/0.png") + 3  # local header, name, a few bytes into the stream
     return corrupt(data, start, 30)
 
@@ -199,26 +258,34 @@ def xz_tar_with_bad_stream() -> bytes:
     return corrupt(data, len(data) // 2, 50)
 
 
-@pytest.mark.parametrize("archive", [deflated_zip_with_bad_stream, xz_tar_with_bad_stream], ids=["zip-deflate", "tar-xz"])
+@pytest.mark.parametrize(
+    "archive", [deflated_zip_with_bad_stream, xz_tar_with_bad_stream], ids=["zip-deflate", "tar-xz"]
+)
 def test_corrupt_compressed_archives_are_422_not_500(http: httpx.Client, archive) -> None:
     scene = new_scene(http)
     refused(upload_archive(http, scene, archive()), 422, "archive", "not a readable")
     assert frame_count(http, scene) == 0
 
 
-def test_archive_errors_never_show_the_servers_paths(http: httpx.Client, api_server: LiveServer) -> None:
+def test_archive_errors_never_show_the_servers_paths(
+    http: httpx.Client, api_server: LiveServer
+) -> None:
     """A member name longer than the file system allows used to answer with the full path of
     the server's extraction folder."""
     scene = new_scene(http)
     r = upload_archive(http, scene, tar_of([*SCENE.items(), ("color/" + "a" * 300 + ".txt", b"x")]))
     message = refused(r, 422, "archive", "File name too long")
-    assert str(api_server.settings.resolved_work_dir) not in message and "csa-archive" not in message
+    assert (
+        str(api_server.settings.resolved_work_dir) not in message and "csa-archive" not in message
+    )
 
 
 def gnu_tar_of(entries: list[tuple[str, bytes]]) -> bytes:
     """A GNU-format tar whose names are raw bytes (surrogate escapes), as tar writes them."""
     buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w", format=tarfile.GNU_FORMAT, encoding="utf-8", errors="surrogateescape") as tf:
+    with tarfile.open(
+        fileobj=buf, mode="w", format=tarfile.GNU_FORMAT, encoding="utf-8", errors="surrogateescape"
+    ) as tf:
         for name, data in entries:
             info = tarfile.TarInfo(name)
             info.size = len(data)
@@ -228,10 +295,15 @@ def gnu_tar_of(entries: list[tuple[str, bytes]]) -> bytes:
 
 @pytest.mark.parametrize(
     ("member", "field"),
-    [("color/\u00b2.png", "archive:color/\u00b2.png"), ("color/\udcff.png", "archive:color/\\udcff.png")],
+    [
+        ("color/\u00b2.png", "archive:color/\u00b2.png"),
+        ("color/\udcff.png", "archive:color/\\udcff.png"),
+    ],
     ids=["superscript-two", "not-utf8"],
 )
-def test_archive_colour_images_with_names_that_are_not_frame_names_are_422(http: httpx.Client, member: str, field: str) -> None:
+def test_archive_colour_images_with_names_that_are_not_frame_names_are_422(
+    http: httpx.Client, member: str, field: str
+) -> None:
     """``'\u00b2'.isdigit()`` is true but ``int('\u00b2')`` fails: sorting the frame names
     answered 500 before the names were checked. A name in bytes that are not UTF-8 made the
     error answer itself unencodable (500); it is answered with the bytes escaped."""
@@ -243,7 +315,9 @@ def test_archive_colour_images_with_names_that_are_not_frame_names_are_422(http:
 
 def test_archive_depth_intrinsics_have_the_text_limit(http: httpx.Client) -> None:
     scene = new_scene(http)
-    r = upload_archive(http, scene, tar_of([*SCENE.items(), ("intrinsic/intrinsic_depth.txt", b"1 " * 40_000)]))
+    r = upload_archive(
+        http, scene, tar_of([*SCENE.items(), ("intrinsic/intrinsic_depth.txt", b"1 " * 40_000)])
+    )
     refused(r, 413, "archive:intrinsic/intrinsic_depth.txt", "65536 bytes")
     assert frame_count(http, scene) == 0
 
@@ -266,14 +340,20 @@ def gzipped(*blocks: bytes) -> bytes:
     [tarfile.GNUTYPE_LONGNAME, tarfile.GNUTYPE_LONGLINK, tarfile.XHDTYPE, tarfile.XGLTYPE],
     ids=["gnu-long-name", "gnu-long-link", "pax", "pax-global"],
 )
-def test_tar_extended_headers_declaring_gigabytes_are_refused_unread(http: httpx.Client, kind: bytes) -> None:
+def test_tar_extended_headers_declaring_gigabytes_are_refused_unread(
+    http: httpx.Client, kind: bytes
+) -> None:
     """Python's tarfile reads a pax or GNU long-name header into memory whole, before the
     member it describes reaches any limit of ours: in a gzipped tar a few kilobytes decompress
     to gigabytes of header. Such a header is refused from its declared size."""
     scene = new_scene(http)
     declared = 8 * 1024**3 - 1  # the largest size an octal header field holds
-    data = gzipped(tar_header("././@LongLink", kind, declared), b"a" * 4096, tar_of(list(SCENE.items())))
-    message = refused(upload_archive(http, scene, data), 422, "archive", f"extended header of {declared} bytes")
+    data = gzipped(
+        tar_header("././@LongLink", kind, declared), b"a" * 4096, tar_of(list(SCENE.items()))
+    )
+    message = refused(
+        upload_archive(http, scene, data), 422, "archive", f"extended header of {declared} bytes"
+    )
     assert "csa-archive" not in message
     assert frame_count(http, scene) == 0
 
@@ -287,27 +367,63 @@ def pax_record(key: str, value: str) -> bytes:
 
 
 def pax_header(records: bytes, name: str = "pax") -> bytes:
-    return tar_header(name, tarfile.XHDTYPE, len(records)) + records.ljust(-(-len(records) // 512) * 512, b"\0")
+    return tar_header(name, tarfile.XHDTYPE, len(records)) + records.ljust(
+        -(-len(records) // 512) * 512, b"\0"
+    )
 
 
 @pytest.mark.parametrize(
     ("archive", "problem"),
     [
-        (lambda: gzipped(tar_header("color/1.png", tarfile.GNUTYPE_SPARSE, 10), tar_of(list(SCENE.items()))), "sparse files are not allowed"),
         (
-            lambda: gzipped(pax_header(pax_record("GNU.sparse.major", "1") + pax_record("GNU.sparse.minor", "0")), tar_header("color/1.png", tarfile.REGTYPE, 512), b"x\n".ljust(512, b"\0"), tar_of(list(SCENE.items()))),
+            lambda: gzipped(
+                tar_header("color/1.png", tarfile.GNUTYPE_SPARSE, 10), tar_of(list(SCENE.items()))
+            ),
             "sparse files are not allowed",
         ),
         (
-            lambda: gzipped(pax_header(pax_record("GNU.sparse.map", "a,b") + pax_record("GNU.sparse.size", "9")), tar_header("color/1.png", tarfile.REGTYPE, 0), tar_of(list(SCENE.items()))),
+            lambda: gzipped(
+                pax_header(
+                    pax_record("GNU.sparse.major", "1") + pax_record("GNU.sparse.minor", "0")
+                ),
+                tar_header("color/1.png", tarfile.REGTYPE, 512),
+                b"x\n".ljust(512, b"\0"),
+                tar_of(list(SCENE.items())),
+            ),
+            "sparse files are not allowed",
+        ),
+        (
+            lambda: gzipped(
+                pax_header(
+                    pax_record("GNU.sparse.map", "a,b") + pax_record("GNU.sparse.size", "9")
+                ),
+                tar_header("color/1.png", tarfile.REGTYPE, 0),
+                tar_of(list(SCENE.items())),
+            ),
             "not a readable tar archive",
         ),
-        (lambda: gzipped(pax_header(pax_record("comment", "x")) * 2000, tar_of(list(SCENE.items()))), "not a readable tar archive"),
-        (lambda: tar_of([(".", b"x" * 100), *SCENE.items()]), "a file cannot be the archive folder itself"),
+        (
+            lambda: gzipped(
+                pax_header(pax_record("comment", "x")) * 2000, tar_of(list(SCENE.items()))
+            ),
+            "not a readable tar archive",
+        ),
+        (
+            lambda: tar_of([(".", b"x" * 100), *SCENE.items()]),
+            "a file cannot be the archive folder itself",
+        ),
     ],
-    ids=["gnu-sparse", "pax-sparse-1.0", "pax-sparse-map-garbage", "chain-of-2000-pax-headers", "file-named-dot"],
+    ids=[
+        "gnu-sparse",
+        "pax-sparse-1.0",
+        "pax-sparse-map-garbage",
+        "chain-of-2000-pax-headers",
+        "file-named-dot",
+    ],
 )
-def test_tar_members_that_tarfile_cannot_read_safely_are_refused(http: httpx.Client, archive, problem: str) -> None:
+def test_tar_members_that_tarfile_cannot_read_safely_are_refused(
+    http: httpx.Client, archive, problem: str
+) -> None:
     """Sparse maps grow with the data that follows them (unbounded memory) and malformed ones
     raised ValueError; a chain of extended headers raised RecursionError; a file named ``.``
     had its data skipped without being counted: all answered 500 or ran unbounded."""
@@ -329,12 +445,18 @@ NOT_PINHOLE = [
 
 
 @pytest.mark.parametrize(("matrix", "problem"), NOT_PINHOLE)
-def test_intrinsic_matrices_that_are_not_pinhole_matrices_are_refused(http: httpx.Client, matrix: str, problem: str) -> None:
+def test_intrinsic_matrices_that_are_not_pinhole_matrices_are_refused(
+    http: httpx.Client, matrix: str, problem: str
+) -> None:
     """Those cells used to be ignored: a camera with skew or a homogeneous scale was stored as
     another camera than the one the client described."""
     scene = new_scene(http)
     refused(upload_frame(http, scene, "0", intrinsics=matrix.encode()), 422, "intrinsics", problem)
-    r = upload_archive(http, scene, tar_of(list({**SCENE, "intrinsic/intrinsic_color.txt": matrix.encode()}.items())))
+    r = upload_archive(
+        http,
+        scene,
+        tar_of(list({**SCENE, "intrinsic/intrinsic_color.txt": matrix.encode()}.items())),
+    )
     refused(r, 422, "archive:intrinsic/intrinsic_color.txt", problem)
     assert frame_count(http, scene) == 0
 
@@ -357,7 +479,14 @@ def test_a_scene_keeps_the_depth_camera_of_its_first_frame(http: httpx.Client) -
     camera refused later frames that (rightly) did not repeat the depth intrinsics."""
     plain = new_scene(http)
     assert upload_frame(http, plain, "0").status_code == 201
-    r = upload_frame(http, plain, "1", color=color(seed=1), intrinsics=None, depth_intrinsics=b"99 0 15.5\n0 99 11.5\n0 0 1\n")
+    r = upload_frame(
+        http,
+        plain,
+        "1",
+        color=color(seed=1),
+        intrinsics=None,
+        depth_intrinsics=b"99 0 15.5\n0 99 11.5\n0 0 1\n",
+    )
     refused(r, 422, "depth_intrinsics", "one depth camera")
     assert frame_count(http, plain) == 1
     assert http.get(f"/api/v1/scenes/{plain}").json()["depth_size"] == [W, H]
@@ -367,7 +496,19 @@ def test_a_scene_keeps_the_depth_camera_of_its_first_frame(http: httpx.Client) -
     assert upload_frame(http, own, "0", depth=depth(16, 9), depth_intrinsics=d_k).status_code == 201
     r = upload_frame(http, own, "1", color=color(seed=2), depth=depth(16, 9), intrinsics=None)
     assert r.status_code == 201, r.text[:300]
-    refused(upload_frame(http, own, "2", color=color(seed=3), depth=depth(16, 9), depth_intrinsics=b"16 0 8\n0 15 4.5\n0 0 1\n"), 422, "depth_intrinsics", "differ")
+    refused(
+        upload_frame(
+            http,
+            own,
+            "2",
+            color=color(seed=3),
+            depth=depth(16, 9),
+            depth_intrinsics=b"16 0 8\n0 15 4.5\n0 0 1\n",
+        ),
+        422,
+        "depth_intrinsics",
+        "differ",
+    )
     assert frame_count(http, own) == 2
 
 
@@ -396,13 +537,29 @@ def checkpoint(card: dict | list) -> bytes:
         ({**BASE_CARD, "input_size": [8192, 8192]}, "more than the limit"),
         (BASE_CARD, "weights do not match lraspp_mobilenet_v3_large"),
     ],
-    ids=["std-strings", "std-string", "mean-number", "num-classes-huge", "num-classes-text", "class-names", "metrics-list", "input-size-huge", "weights"],
+    ids=[
+        "std-strings",
+        "std-string",
+        "mean-number",
+        "num-classes-huge",
+        "num-classes-text",
+        "class-names",
+        "metrics-list",
+        "input-size-huge",
+        "weights",
+    ],
 )
-def test_forged_model_cards_are_refused_at_upload(http: httpx.Client, card: dict, problem: str) -> None:
+def test_forged_model_cards_are_refused_at_upload(
+    http: httpx.Client, card: dict, problem: str
+) -> None:
     """Cards with wrong types answered 500; a card with absurd classes or weights that do not
     fit its network was registered and made every later prediction with it fail."""
     before = http.get("/api/v1/models").json()
-    r = http.post("/api/v1/models", files={"checkpoint": ("m.safetensors", checkpoint(card), "application/octet-stream")}, data={"name": f"forged-{next(_names)}"})
+    r = http.post(
+        "/api/v1/models",
+        files={"checkpoint": ("m.safetensors", checkpoint(card), "application/octet-stream")},
+        data={"name": f"forged-{next(_names)}"},
+    )
     message = refused(r, 422, "checkpoint", problem)
     assert "/tmp" not in message
     assert http.get("/api/v1/models").json() == before
@@ -422,7 +579,9 @@ def upload_checkpoint(http: httpx.Client, data: bytes) -> httpx.Response:
 
 
 @pytest.mark.parametrize("spoil", ["extra-tensor", "shape", "dtype"])
-def test_checkpoints_that_do_not_fit_the_network_are_refused_from_the_header(http: httpx.Client, monkeypatch, spoil: str) -> None:
+def test_checkpoints_that_do_not_fit_the_network_are_refused_from_the_header(
+    http: httpx.Client, monkeypatch, spoil: str
+) -> None:
     """Every tensor of an uploaded checkpoint was read, twice (for the card, then for the
     network), before its names, shapes and dtypes were compared with the card's network: a
     file whose header alone shows it cannot fit cost memory in proportion to the upload limit.
@@ -435,16 +594,24 @@ def test_checkpoints_that_do_not_fit_the_network_are_refused_from_the_header(htt
     tensors = dict(network_weights())
     k = next(k for k, v in tensors.items() if v.dtype == torch.float32 and v.ndim == 4)
     if spoil == "extra-tensor":
-        tensors["extra"], problem = torch.zeros(1), "weights do not match lraspp_mobilenet_v3_large: unexpected ['extra']"
+        tensors["extra"], problem = (
+            torch.zeros(1),
+            "weights do not match lraspp_mobilenet_v3_large: unexpected ['extra']",
+        )
     elif spoil == "shape":
         tensors[k] = torch.zeros(tensors[k].shape[0] + 1, *tensors[k].shape[1:])
         problem = f"tensor {k} is F32 ({tensors[k].shape[0]}, "
     else:
-        tensors[k], problem = tensors[k].double(), f"tensor {k} is F64 {tuple(tensors[k].shape)}, lraspp_mobilenet_v3_large needs F32"
+        tensors[k], problem = (
+            tensors[k].double(),
+            f"tensor {k} is F64 {tuple(tensors[k].shape)}, lraspp_mobilenet_v3_large needs F32",
+        )
     data = save(tensors, metadata={"csa": json.dumps(BASE_CARD)})
     reads: list[str] = []
     real = checkpoint.read_safetensors
-    monkeypatch.setattr(checkpoint, "read_safetensors", lambda path: reads.append(str(path)) or real(path))
+    monkeypatch.setattr(
+        checkpoint, "read_safetensors", lambda path: reads.append(str(path)) or real(path)
+    )
     refused(upload_checkpoint(http, data), 422, "checkpoint", problem)
     assert reads == []
 
@@ -461,19 +628,42 @@ def raw_safetensors(header: bytes, data: bytes = b"", declared: int | None = Non
     [
         raw_safetensors(b"{}", declared=10**6),
         raw_safetensors(b'{"__metadata__": {"csa": "\xff\xfe"}}'),
-        raw_safetensors(json.dumps({"x": {"dtype": "F32", "shape": [2**40], "data_offsets": [0, 4]}}).encode(), b"\0" * 4),
-        raw_safetensors(json.dumps({"x": {"dtype": "F32", "shape": [2**62, 2**62], "data_offsets": [0, 4]}}).encode(), b"\0" * 4),
-        raw_safetensors(json.dumps({"x": {"dtype": "F99", "shape": [1], "data_offsets": [0, 4]}}).encode(), b"\0" * 4),
+        raw_safetensors(
+            json.dumps({"x": {"dtype": "F32", "shape": [2**40], "data_offsets": [0, 4]}}).encode(),
+            b"\0" * 4,
+        ),
+        raw_safetensors(
+            json.dumps(
+                {"x": {"dtype": "F32", "shape": [2**62, 2**62], "data_offsets": [0, 4]}}
+            ).encode(),
+            b"\0" * 4,
+        ),
+        raw_safetensors(
+            json.dumps({"x": {"dtype": "F99", "shape": [1], "data_offsets": [0, 4]}}).encode(),
+            b"\0" * 4,
+        ),
     ],
-    ids=["header-longer-than-file", "metadata-not-utf8", "tensor-of-4-tib", "shape-overflows", "unknown-dtype"],
+    ids=[
+        "header-longer-than-file",
+        "metadata-not-utf8",
+        "tensor-of-4-tib",
+        "shape-overflows",
+        "unknown-dtype",
+    ],
 )
-def test_malformed_safetensors_headers_are_refused_unread(http: httpx.Client, monkeypatch, data: bytes) -> None:
+def test_malformed_safetensors_headers_are_refused_unread(
+    http: httpx.Client, monkeypatch, data: bytes
+) -> None:
     from csa_core.seg import checkpoint
 
     reads: list[str] = []
     real = checkpoint.read_safetensors
-    monkeypatch.setattr(checkpoint, "read_safetensors", lambda path: reads.append(str(path)) or real(path))
-    message = refused(upload_checkpoint(http, data), 422, "checkpoint", "not a readable safetensors file")
+    monkeypatch.setattr(
+        checkpoint, "read_safetensors", lambda path: reads.append(str(path)) or real(path)
+    )
+    message = refused(
+        upload_checkpoint(http, data), 422, "checkpoint", "not a readable safetensors file"
+    )
     assert reads == [] and "/tmp" not in message
 
 
@@ -492,7 +682,13 @@ def test_model_cards_nested_deeper_than_a_card_are_refused(http: httpx.Client, d
 
     data = save(network_weights(), metadata={"csa": nested_card(depth)})
     before = http.get("/api/v1/models").json()
-    refused(upload_checkpoint(http, data), 422, "checkpoint", "model card is not valid", "nest more than 32 levels deep")
+    refused(
+        upload_checkpoint(http, data),
+        422,
+        "checkpoint",
+        "model card is not valid",
+        "nest more than 32 levels deep",
+    )
     after = http.get("/api/v1/models")
     assert after.status_code == 200 and after.json() == before
 
@@ -506,7 +702,13 @@ def test_model_cards_over_the_size_cap_are_refused(http: httpx.Client) -> None:
 
     card = json.dumps({**BASE_CARD, "metrics": {"padding": "x" * MAX_CARD_BYTES}})
     before = http.get("/api/v1/models").json()
-    refused(upload_checkpoint(http, save(network_weights(), metadata={"csa": card})), 422, "checkpoint", "model card is not valid", f"more than the {MAX_CARD_BYTES} a card may hold")
+    refused(
+        upload_checkpoint(http, save(network_weights(), metadata={"csa": card})),
+        422,
+        "checkpoint",
+        "model card is not valid",
+        f"more than the {MAX_CARD_BYTES} a card may hold",
+    )
     assert http.get("/api/v1/models").json() == before
 
 
@@ -514,7 +716,9 @@ def test_model_cards_over_the_size_cap_are_refused(http: httpx.Client) -> None:
 
 
 @pytest.mark.parametrize("first", [True, False], ids=["first-frame", "later-frame"])
-def test_an_upload_racing_the_deletion_of_its_scene_is_404(http: httpx.Client, api_server: LiveServer, monkeypatch, first: bool) -> None:
+def test_an_upload_racing_the_deletion_of_its_scene_is_404(
+    http: httpx.Client, api_server: LiveServer, monkeypatch, first: bool
+) -> None:
     """The scene disappears between validation and the frame's row (another client deleted
     it): the upload answers 404 instead of a 500 from the database."""
     from server.db.models import Scene
@@ -538,7 +742,9 @@ def test_an_upload_racing_the_deletion_of_its_scene_is_404(http: httpx.Client, a
     assert http.get(f"/api/v1/scenes/{scene}").status_code == 404
 
 
-def test_a_frame_without_a_name_that_loses_the_race_for_its_number_takes_the_next(http: httpx.Client, api_server: LiveServer, monkeypatch) -> None:
+def test_a_frame_without_a_name_that_loses_the_race_for_its_number_takes_the_next(
+    http: httpx.Client, api_server: LiveServer, monkeypatch
+) -> None:
     """Another API process stores a frame under the number this upload was about to take: the
     upload answered 409 telling the client, who sent no name, to overwrite that frame with
     replace=true. It takes the next number instead, and both frames are kept."""
@@ -558,12 +764,24 @@ def test_a_frame_without_a_name_that_loses_the_race_for_its_number_takes_the_nex
             with api_server.services.sessions() as other:
                 moved = valid.pose.copy()
                 moved[0, 3] += 1.0
-                real(other, store, other.get(Scene, row.id), name, dataclasses.replace(valid, pose=moved))
+                real(
+                    other,
+                    store,
+                    other.get(Scene, row.id),
+                    name,
+                    dataclasses.replace(valid, pose=moved),
+                )
                 other.commit()
         return real(db, store, row, name, valid, *args, **kwargs)
 
     monkeypatch.setattr(frames, "store_frame", another_process_first)
-    r = http.post(f"/api/v1/scenes/{scene}/frames", files={k: (k, v, "application/octet-stream") for k, v in {"color": color(seed=9), "depth": depth(), "pose": POSE.encode()}.items()})
+    r = http.post(
+        f"/api/v1/scenes/{scene}/frames",
+        files={
+            k: (k, v, "application/octet-stream")
+            for k, v in {"color": color(seed=9), "depth": depth(), "pose": POSE.encode()}.items()
+        },
+    )
     monkeypatch.undo()
     assert raced == ["1"]
     assert r.status_code == 201 and r.json()["name"] == "2", r.text[:300]
@@ -590,20 +808,32 @@ def test_jobs_refuse_scene_lists_that_name_a_scene_twice(http: httpx.Client, sce
     for body, field in [
         ({"kind": "pretrain", "params": {"scenes": [labelled] * 1000}}, "params.scenes"),
         ({"kind": "pretrain", "params": {"scenes": [labelled, ident]}}, "params.scenes"),
-        ({"kind": "pretrain", "params": {"scenes": [labelled], "val_scenes": [labelled]}}, "params.val_scenes"),
+        (
+            {"kind": "pretrain", "params": {"scenes": [labelled], "val_scenes": [labelled]}},
+            "params.val_scenes",
+        ),
     ]:
         refused(http.post("/api/v1/jobs", json=body), 422, field, labelled)
     assert len(http.get("/api/v1/jobs").json()) == before
 
 
-def test_jobs_needing_ground_truth_refuse_unlabelled_scenes_when_queued(http: httpx.Client, scenes) -> None:
+def test_jobs_needing_ground_truth_refuse_unlabelled_scenes_when_queued(
+    http: httpx.Client, scenes
+) -> None:
     """They used to be queued and fail when they ran (a fit_nerf on ground truth still does: the
     dashboard's test of a failed job relies on it)."""
     labelled, unlabelled, _ = scenes
     before = len(http.get("/api/v1/jobs").json())
-    r = http.post("/api/v1/jobs", json={"kind": "pretrain", "params": {"scenes": [labelled, unlabelled]}})
-    refused(r, 422, "params.scenes", unlabelled, "1 of 1 frames have no ground-truth labels (e.g. 0)")
-    r = http.post("/api/v1/jobs", json={"kind": "pretrain", "params": {"scenes": [labelled], "val_scenes": [unlabelled]}})
+    r = http.post(
+        "/api/v1/jobs", json={"kind": "pretrain", "params": {"scenes": [labelled, unlabelled]}}
+    )
+    refused(
+        r, 422, "params.scenes", unlabelled, "1 of 1 frames have no ground-truth labels (e.g. 0)"
+    )
+    r = http.post(
+        "/api/v1/jobs",
+        json={"kind": "pretrain", "params": {"scenes": [labelled], "val_scenes": [unlabelled]}},
+    )
     refused(r, 422, "params.val_scenes", unlabelled)
     assert len(http.get("/api/v1/jobs").json()) == before
 
@@ -611,18 +841,43 @@ def test_jobs_needing_ground_truth_refuse_unlabelled_scenes_when_queued(http: ht
 @pytest.mark.parametrize(
     ("body", "field"),
     [
-        (lambda s: {"kind": "fit_nerf", "params": {"scene": s, "labels": "none", "size": "8192x8192"}}, "params.size"),
-        (lambda s: {"kind": "fit_nerf", "params": {"scene": s, "labels": "none", "size": "64x16"}}, "params.size"),
-        (lambda s: {"kind": "pretrain", "params": {"scenes": [s], "size": "4096x4096", "batch_size": 1024}}, "params.size"),
+        (
+            lambda s: {
+                "kind": "fit_nerf",
+                "params": {"scene": s, "labels": "none", "size": "8192x8192"},
+            },
+            "params.size",
+        ),
+        (
+            lambda s: {
+                "kind": "fit_nerf",
+                "params": {"scene": s, "labels": "none", "size": "64x16"},
+            },
+            "params.size",
+        ),
+        (
+            lambda s: {
+                "kind": "pretrain",
+                "params": {"scenes": [s], "size": "4096x4096", "batch_size": 1024},
+            },
+            "params.size",
+        ),
     ],
     ids=["fit-8192", "fit-wider", "pretrain-4096"],
 )
-def test_jobs_refuse_working_sizes_beyond_the_scenes_frames(http: httpx.Client, scenes, body, field: str) -> None:
+def test_jobs_refuse_working_sizes_beyond_the_scenes_frames(
+    http: httpx.Client, scenes, body, field: str
+) -> None:
     """A 32x24 scene read at 8192x8192 holds gigabytes per frame; frames are bounded by the
     upload limits, so a job's size is bounded by its frames."""
     labelled, _, _ = scenes
     before = len(http.get("/api/v1/jobs").json())
-    refused(http.post("/api/v1/jobs", json=body(labelled)), 422, field, f"larger than the scene's frames ({W}x{H})")
+    refused(
+        http.post("/api/v1/jobs", json=body(labelled)),
+        422,
+        field,
+        f"larger than the scene's frames ({W}x{H})",
+    )
     assert len(http.get("/api/v1/jobs").json()) == before
 
 
@@ -630,15 +885,33 @@ def test_jobs_at_the_frames_size_or_smaller_are_queued(http: httpx.Client, scene
     """The other side of the rules above."""
     labelled, _, _ = scenes
     for body in (
-        {"kind": "fit_nerf", "params": {"scene": labelled, "labels": "ground_truth", "size": f"{W}x{H}", "steps": 10}},
-        {"kind": "pretrain", "params": {"scenes": [labelled], "size": "16x12", "epochs": 1, "name": f"ok-{next(_names)}"}},
+        {
+            "kind": "fit_nerf",
+            "params": {
+                "scene": labelled,
+                "labels": "ground_truth",
+                "size": f"{W}x{H}",
+                "steps": 10,
+            },
+        },
+        {
+            "kind": "pretrain",
+            "params": {
+                "scenes": [labelled],
+                "size": "16x12",
+                "epochs": 1,
+                "name": f"ok-{next(_names)}",
+            },
+        },
     ):
         r = http.post("/api/v1/jobs", json=body)
         assert r.status_code == 202, r.text[:300]
         assert http.post(f"/api/v1/jobs/{r.json()['id']}/cancel").json()["status"] == "cancelled"
 
 
-def test_a_name_or_lineage_a_queued_pretrain_will_register_is_taken(http: httpx.Client, scenes) -> None:
+def test_a_name_or_lineage_a_queued_pretrain_will_register_is_taken(
+    http: httpx.Client, scenes
+) -> None:
     """Only the registry was asked whether a name or lineage was free: a second pre-training
     (or an uploaded checkpoint) with the lineage of a queued one was accepted, and registered
     a second root of that lineage (versions the continual chain never reaches); one with its
@@ -646,17 +919,33 @@ def test_a_name_or_lineage_a_queued_pretrain_will_register_is_taken(http: httpx.
     free again once the first job has ended."""
     labelled, _, _ = scenes
     tag = f"claimed-{next(_names)}"
-    pretrain = lambda **p: http.post("/api/v1/jobs", json={"kind": "pretrain", "params": {"scenes": [labelled], "epochs": 1, **p}})  # noqa: E731
+    pretrain = lambda **p: http.post(  # noqa: E731
+        "/api/v1/jobs",
+        json={"kind": "pretrain", "params": {"scenes": [labelled], "epochs": 1, **p}},
+    )
     first = pretrain(name=tag)  # lineage: the name
     assert first.status_code == 202, first.text[:300]
-    jobs_before, models_before = len(http.get("/api/v1/jobs").json()), http.get("/api/v1/models").json()
+    jobs_before, models_before = (
+        len(http.get("/api/v1/jobs").json()),
+        http.get("/api/v1/models").json(),
+    )
     job = first.json()["id"]
     refused(pretrain(name=f"{tag}-b", lineage=tag), 409, "params.lineage", tag, f"job {job}")
     refused(pretrain(name=tag, lineage=f"{tag}-other"), 409, "params.name", tag, f"job {job}")
-    for data, field in (({"name": f"{tag}-c", "lineage": tag}, "lineage"), ({"name": tag, "lineage": f"{tag}-other"}, "name")):
-        r = http.post("/api/v1/models", files={"checkpoint": ("m.safetensors", b"never read", "application/octet-stream")}, data=data)
+    for data, field in (
+        ({"name": f"{tag}-c", "lineage": tag}, "lineage"),
+        ({"name": tag, "lineage": f"{tag}-other"}, "name"),
+    ):
+        r = http.post(
+            "/api/v1/models",
+            files={"checkpoint": ("m.safetensors", b"never read", "application/octet-stream")},
+            data=data,
+        )
         refused(r, 409, field, tag, f"job {job}")
-    assert len(http.get("/api/v1/jobs").json()) == jobs_before and http.get("/api/v1/models").json() == models_before
+    assert (
+        len(http.get("/api/v1/jobs").json()) == jobs_before
+        and http.get("/api/v1/models").json() == models_before
+    )
     assert http.post(f"/api/v1/jobs/{job}/cancel").json()["status"] == "cancelled"
     again = pretrain(name=f"{tag}-b", lineage=tag)
     assert again.status_code == 202, again.text[:300]
@@ -704,16 +993,29 @@ def test_adaptation_steps_name_their_version_with_a_free_name_that_fits(tmp_path
     ],
     ids=["misspelt-labels", "misspelt-name", "archive-extra", "model-extra", "predict-extra"],
 )
-def test_form_parts_a_route_does_not_read_are_refused(http: httpx.Client, route: str, files: dict, data: dict, field: str) -> None:
+def test_form_parts_a_route_does_not_read_are_refused(
+    http: httpx.Client, route: str, files: dict, data: dict, field: str
+) -> None:
     """FastAPI drops an unknown part silently: a frame uploaded with ``label`` (for
     ``labels``) would be stored without its labels. Every multipart route names the part."""
     scene = new_scene(http)
     if route == "frames":
-        files = {"color": color(), "depth": depth(), "pose": POSE.encode(), "intrinsics": K.encode()} | files
+        files = {
+            "color": color(),
+            "depth": depth(),
+            "pose": POSE.encode(),
+            "intrinsics": K.encode(),
+        } | files
         url = f"/api/v1/scenes/{scene}/frames"
     else:
-        url = {"archive": f"/api/v1/scenes/{scene}/archive", "models": "/api/v1/models", "predict": "/api/v1/predict"}[route]
-    r = http.post(url, files={k: (k, v, "application/octet-stream") for k, v in files.items()}, data=data)
+        url = {
+            "archive": f"/api/v1/scenes/{scene}/archive",
+            "models": "/api/v1/models",
+            "predict": "/api/v1/predict",
+        }[route]
+    r = http.post(
+        url, files={k: (k, v, "application/octet-stream") for k, v in files.items()}, data=data
+    )
     refused(r, 422, field, "unknown form part")
     assert frame_count(http, scene) == 0
 
@@ -728,15 +1030,32 @@ def test_form_parts_a_route_does_not_read_are_refused(http: httpx.Client, route:
     ],
     ids=["two-colours", "two-labels", "two-names", "two-archives"],
 )
-def test_form_parts_sent_twice_are_refused(http: httpx.Client, route: str, parts: list, field: str) -> None:
+def test_form_parts_sent_twice_are_refused(
+    http: httpx.Client, route: str, parts: list, field: str
+) -> None:
     """FastAPI keeps the last of two same-named parts and drops the other silently: a frame
-    could be stored with the labels the client did not mean. Every multipart route names the part."""
+    could be stored with the labels the client did not mean. Every multipart route names the
+    part."""
     scene = new_scene(http)
-    base = [("color", color()), ("depth", depth()), ("pose", POSE.encode()), ("intrinsics", K.encode())] if route == "frames" else []
+    base = (
+        [
+            ("color", color()),
+            ("depth", depth()),
+            ("pose", POSE.encode()),
+            ("intrinsics", K.encode()),
+        ]
+        if route == "frames"
+        else []
+    )
     sent = [p for p in base if p[0] not in {name for name, _ in parts}] + parts
     files = [(name, (name, data, "application/octet-stream")) for name, data in sent]
     data = {"name": ["a", "b"]} if field == "name" else {}
-    refused(http.post(f"/api/v1/scenes/{scene}/{route}", files=files, data=data), 422, field, "sent more than once")
+    refused(
+        http.post(f"/api/v1/scenes/{scene}/{route}", files=files, data=data),
+        422,
+        field,
+        "sent more than once",
+    )
     assert frame_count(http, scene) == 0
 
 
@@ -745,7 +1064,17 @@ def test_known_form_parts_still_store_the_frame(http: httpx.Client) -> None:
     scene = new_scene(http)
     r = http.post(
         f"/api/v1/scenes/{scene}/frames",
-        files={k: (k, v, "application/octet-stream") for k, v in {"color": color(), "depth": depth(), "pose": POSE.encode(), "intrinsics": K.encode(), "depth_intrinsics": K.encode(), "labels": labels()}.items()},
+        files={
+            k: (k, v, "application/octet-stream")
+            for k, v in {
+                "color": color(),
+                "depth": depth(),
+                "pose": POSE.encode(),
+                "intrinsics": K.encode(),
+                "depth_intrinsics": K.encode(),
+                "labels": labels(),
+            }.items()
+        },
         data={"name": "0", "replace": "false"},
     )
     assert r.status_code == 201, r.text[:300]
@@ -755,7 +1084,9 @@ def test_known_form_parts_still_store_the_frame(http: httpx.Client) -> None:
 # --- blobs left behind by a transaction that failed ----------------------------------------
 
 
-def test_blobs_of_a_failed_transaction_are_swept_after_the_grace_period(http: httpx.Client, api_server: LiveServer, monkeypatch) -> None:
+def test_blobs_of_a_failed_transaction_are_swept_after_the_grace_period(
+    http: httpx.Client, api_server: LiveServer, monkeypatch
+) -> None:
     """The frame's files are written before its row commits; when the commit fails they stay
     on disk unrecorded. The sweep deletes them once older than the grace period and never
     touches a recorded blob or a young one (an open transaction may be about to record it)."""
@@ -886,13 +1217,19 @@ def _checkpoint_bytes() -> bytes:
 
 def _registered_model(http: httpx.Client) -> str:
     name = f"loop-{next(_names)}"
-    r = http.post("/api/v1/models", files={"checkpoint": ("m.safetensors", _checkpoint_bytes(), "application/octet-stream")}, data={"name": name, "make_current": "false"})
+    r = http.post(
+        "/api/v1/models",
+        files={"checkpoint": ("m.safetensors", _checkpoint_bytes(), "application/octet-stream")},
+        data={"name": name, "make_current": "false"},
+    )
     assert r.status_code == 201, r.text[:300]
     return name
 
 
 @pytest.mark.parametrize("route", ["frame", "archive", "model", "predict"])
-def test_uploads_are_processed_off_the_event_loop(http: httpx.Client, api_server: LiveServer, monkeypatch, route: str) -> None:
+def test_uploads_are_processed_off_the_event_loop(
+    http: httpx.Client, api_server: LiveServer, monkeypatch, route: str
+) -> None:
     """An upload's work (decoding and validating images, extracting an archive, loading a
     checkpoint, hashing and fsyncing files, the network) ran on the server's event loop: while
     an archive of 60 frames of 640x480 (88 MB) was stored, every other request, ``/health``
@@ -934,7 +1271,11 @@ def test_uploads_are_processed_off_the_event_loop(http: httpx.Client, api_server
             return upload_archive(c, scene, tar_of(list(SCENE.items())))
         if route == "model":
             return upload_checkpoint(c, card_checkpoint)
-        return c.post("/api/v1/predict", files={"image": ("i.png", color(), "image/png")}, data={"model": model})
+        return c.post(
+            "/api/v1/predict",
+            files={"image": ("i.png", color(), "image/png")},
+            data={"model": model},
+        )
 
     answers: list[httpx.Response] = []
     with httpx.Client(base_url=api_server.url, headers={"X-API-Key": API_KEY}, timeout=60) as other:
@@ -942,7 +1283,9 @@ def test_uploads_are_processed_off_the_event_loop(http: httpx.Client, api_server
         upload.start()
         try:
             assert entered.wait(30), "the upload never reached the held step"
-            health = httpx.get(f"{api_server.url}/health", timeout=5)  # ReadTimeout on a blocked loop
+            health = httpx.get(
+                f"{api_server.url}/health", timeout=5
+            )  # ReadTimeout on a blocked loop
             assert health.status_code == 200
             assert not release.is_set() and upload.is_alive()
         finally:
@@ -970,7 +1313,11 @@ def test_non_ascii_csrf_tokens_are_403_not_500(api_server: LiveServer) -> None:
     dashboard request whose CSRF token (header or form field) had one answered 500."""
     with httpx.Client(base_url=api_server.url, headers={"Origin": api_server.url}, timeout=30) as c:
         assert c.post("/ui/login", data={"api_key": API_KEY}).status_code == 303
-        r = c.post("/ui/api/v1/scenes", json={"name": f"csrf-{next(_names)}"}, headers={"X-CSRF-Token": b"\xe9t\xe9"})
+        r = c.post(
+            "/ui/api/v1/scenes",
+            json={"name": f"csrf-{next(_names)}"},
+            headers={"X-CSRF-Token": b"\xe9t\xe9"},
+        )
         assert r.status_code == 403 and "CSRF token" in r.json()["error"]["message"], r.text[:300]
         r = c.post("/ui/logout", data={"csrf_token": "été"})
         assert r.status_code == 403 and "CSRF token" in r.json()["error"]["message"], r.text[:300]
@@ -980,13 +1327,35 @@ def test_non_ascii_csrf_tokens_are_403_not_500(api_server: LiveServer) -> None:
     ("route", "head", "content_type", "what"),
     [
         ("/api/v1/scenes", b'{"name": "big", "description": "', "application/json", "request body"),
-        ("/api/v1/jobs", b'{"kind": "evaluate", "params": {"model": "', "application/json", "request body"),
-        ("frames", b'--BB\r\nContent-Disposition: form-data; name="color"; filename="c.png"\r\n\r\n', "multipart/form-data; boundary=BB", "frame upload"),
-        ("archive", b'--BB\r\nContent-Disposition: form-data; name="archive"; filename="a.tar"\r\n\r\n', "multipart/form-data; boundary=BB", "archive"),
+        (
+            "/api/v1/jobs",
+            b'{"kind": "evaluate", "params": {"model": "',
+            "application/json",
+            "request body",
+        ),
+        (
+            "frames",
+            b'--BB\r\nContent-Disposition: form-data; name="color"; filename="c.png"\r\n\r\n',
+            "multipart/form-data; boundary=BB",
+            "frame upload",
+        ),
+        (
+            "archive",
+            b'--BB\r\nContent-Disposition: form-data; name="archive"; filename="a.tar"\r\n\r\n',
+            "multipart/form-data; boundary=BB",
+            "archive",
+        ),
     ],
     ids=["json-scene", "json-job", "frame", "archive"],
 )
-def test_bodies_without_a_length_over_the_limit_are_413(http: httpx.Client, api_server: LiveServer, route: str, head: bytes, content_type: str, what: str) -> None:
+def test_bodies_without_a_length_over_the_limit_are_413(
+    http: httpx.Client,
+    api_server: LiveServer,
+    route: str,
+    head: bytes,
+    content_type: str,
+    what: str,
+) -> None:
     """A body sent chunked (no Content-Length) was cut off at the limit, but FastAPI turned the
     middleware's error into its own 400 "There was an error parsing the body": the client
     could not tell that its upload was too large. It is a 413 naming the limit, as with a
@@ -1019,7 +1388,9 @@ def test_bodies_without_a_length_over_the_limit_are_413(http: httpx.Client, api_
     ],
     ids=["nan", "infinity", "nested-overflow"],
 )
-def test_model_cards_with_non_finite_metrics_are_refused(http: httpx.Client, metrics: str, where: str) -> None:
+def test_model_cards_with_non_finite_metrics_are_refused(
+    http: httpx.Client, metrics: str, where: str
+) -> None:
     """Python's json reads NaN, Infinity and 1e999: a card's metrics holding one were stored
     with the version, as text that is not JSON on SQLite, and on PostgreSQL the database
     refused the row (a 422 that named no field). They are refused, naming where they sit."""
@@ -1027,5 +1398,10 @@ def test_model_cards_with_non_finite_metrics_are_refused(http: httpx.Client, met
 
     card = json.dumps(BASE_CARD)[:-1] + f', "metrics": {metrics}}}'
     before = http.get("/api/v1/models").json()
-    refused(upload_checkpoint(http, save(network_weights(), metadata={"csa": card})), 422, "checkpoint", f"model card {where} is not a finite number")
+    refused(
+        upload_checkpoint(http, save(network_weights(), metadata={"csa": card})),
+        422,
+        "checkpoint",
+        f"model card {where} is not a finite number",
+    )
     assert http.get("/api/v1/models").json() == before

@@ -18,10 +18,13 @@ from client import CSAClient
 from server import capabilities
 from tests.server.conftest import SCENE_SIZE, LiveServer, start_server, test_settings
 
-pytestmark = pytest.mark.skipif(not capabilities.available("seg"), reason="needs csa_core.seg for real training jobs")
+pytestmark = pytest.mark.skipif(
+    not capabilities.available("seg"), reason="needs csa_core.seg for real training jobs"
+)
 
 needs_adapt = pytest.mark.skipif(
-    not (capabilities.available("adapt") and capabilities.available("nerf")), reason="needs csa_core.adapt and csa_core.nerf"
+    not (capabilities.available("adapt") and capabilities.available("nerf")),
+    reason="needs csa_core.adapt and csa_core.nerf",
 )
 
 
@@ -38,8 +41,12 @@ def service(tmp_path_factory) -> Iterator[Service]:
     from csa_core.data.synth import synthesize
 
     data = tmp_path_factory.mktemp("progress")
-    (labelled,) = synthesize(data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="apartment", seed=1)
-    (unlabelled,) = synthesize(data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=2)
+    (labelled,) = synthesize(
+        data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="apartment", seed=1
+    )
+    (unlabelled,) = synthesize(
+        data / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="office", seed=2
+    )
     shutil.rmtree(unlabelled / "label-nyu40")  # the product's normal case: no ground truth at all
     live = start_server(test_settings(data / "service"))
     try:
@@ -71,7 +78,9 @@ def test_cancel_stops_a_pretraining_inside_its_epoch_loop(service: Service) -> N
     c = service.client
     job = c.pretrain([service.labelled], epochs=5000, batch_size=4, name="long", make_current=False)
     # The message comes from the core's callback: the job is inside train_segmentation.
-    wait_until(lambda: c.job(job.id).message.startswith("epoch "), 120, "the job to report an epoch")
+    wait_until(
+        lambda: c.job(job.id).message.startswith("epoch "), 120, "the job to report an epoch"
+    )
     c.cancel_job(job.id)
     final = c.wait_job(job.id, timeout=120, raise_on_failure=False)
     assert final.status == "cancelled" and final.result is None
@@ -84,14 +93,24 @@ def test_cancel_stops_a_pretraining_inside_its_epoch_loop(service: Service) -> N
 @needs_adapt
 def test_adapt_on_a_scene_without_ground_truth(service: Service) -> None:
     c = service.client
-    base = c.wait_job(c.pretrain([service.labelled], epochs=1, batch_size=4, name="base").id, timeout=300)
+    base = c.wait_job(
+        c.pretrain([service.labelled], epochs=1, batch_size=4, name="base").id, timeout=300
+    )
     assert base.status == "succeeded", base.error
     seen: list[float] = []
-    done = c.wait_job(c.adapt(service.unlabelled, model="base", preset="tiny").id, timeout=600, on_progress=lambda j: seen.append(j.progress))
+    done = c.wait_job(
+        c.adapt(service.unlabelled, model="base", preset="tiny").id,
+        timeout=600,
+        on_progress=lambda j: seen.append(j.progress),
+    )
     assert done.status == "succeeded", done.error
     assert seen == sorted(seen) and seen[-1] == 1.0
     new = c.model(done.result["model_id"])
-    assert new.parent_id == base.result["model_id"] and new.lineage == "base" and new.name == "base-step1"
+    assert (
+        new.parent_id == base.result["model_id"]
+        and new.lineage == "base"
+        and new.name == "base-step1"
+    )
     assert new.adapted_scene == service.unlabelled and new.size_bytes > 0
     # Nothing to score against: the metrics that need ground truth are withheld, not made up.
     assert new.metrics["val_miou"] is None and new.metrics["before_val_miou"] is None

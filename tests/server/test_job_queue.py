@@ -35,12 +35,21 @@ TEST_KIND = "count_steps"
 @pytest.fixture
 def services(request, tmp_path: Path, db_backend: str):
     url = database_url(request, db_backend)
-    s = open_services(test_settings(tmp_path, database_url=url, lease_seconds=0.5, heartbeat_seconds=0.1, max_attempts=2))
+    s = open_services(
+        test_settings(
+            tmp_path, database_url=url, lease_seconds=0.5, heartbeat_seconds=0.1, max_attempts=2
+        )
+    )
     yield s
     s.close()
 
 
-def add_job(services: Services, lineage: str | None = None, kind: str = TEST_KIND, params: dict | None = None) -> int:
+def add_job(
+    services: Services,
+    lineage: str | None = None,
+    kind: str = TEST_KIND,
+    params: dict | None = None,
+) -> int:
     with session_scope(services.sessions) as s:
         return queue.enqueue(s, kind, params or {"steps": 5}, lineage).id
 
@@ -94,12 +103,20 @@ def test_expired_leases_are_requeued_then_failed_with_a_reason(services: Service
     for attempt in (1, 2):
         claimed = queue.claim_next(services.sessions, f"w{attempt}", 30, {TEST_KIND})
         assert claimed is not None and claimed.id == j and claimed.attempts == attempt
-        assert queue.recover_stale_jobs(services.sessions, max_attempts=2) == []  # lease still valid
+        assert (
+            queue.recover_stale_jobs(services.sessions, max_attempts=2) == []
+        )  # lease still valid
         with session_scope(services.sessions) as s:
-            s.execute(update(Job).where(Job.id == j).values(lease_expires_at=dt.datetime(2000, 1, 1)))
+            s.execute(
+                update(Job).where(Job.id == j).values(lease_expires_at=dt.datetime(2000, 1, 1))
+            )
         assert queue.recover_stale_jobs(services.sessions, max_attempts=2) == [j]
     final = job(services, j)
-    assert final.status == "failed" and "lease expired" in final.error and "attempt 2 of 2" in final.error
+    assert (
+        final.status == "failed"
+        and "lease expired" in final.error
+        and "attempt 2 of 2" in final.error
+    )
     with session_scope(services.sessions) as s:
         assert s.get(LineageLock, "L") is None  # the lineage is free again
         messages = [m.message for m in s.query(JobLog).filter(JobLog.job_id == j)]
@@ -113,7 +130,11 @@ def test_a_job_lost_with_its_worker_keeps_its_first_start(services: Services) ->
     first = queue.claim_next(services.sessions, "w1", 30, {TEST_KIND})
     assert first is not None and first.started_at is not None
     with session_scope(services.sessions) as s:  # an hour ago, so a reset cannot look equal
-        s.execute(update(Job).where(Job.id == j).values(started_at=first.started_at - dt.timedelta(hours=1)))
+        s.execute(
+            update(Job)
+            .where(Job.id == j)
+            .values(started_at=first.started_at - dt.timedelta(hours=1))
+        )
     reason = "its Ray worker was lost (NodeDiedError: The node died. It was killed.)"
     assert queue.attempt_lost(services.sessions, j, "w1", reason, max_attempts=2) == queue.QUEUED
     assert job(services, j).message == f"re-queued after attempt 1 of 2: {reason}"
@@ -121,7 +142,11 @@ def test_a_job_lost_with_its_worker_keeps_its_first_start(services: Services) ->
     assert second is not None and second.attempts == 2
     assert second.started_at == first.started_at - dt.timedelta(hours=1)
     with session_scope(services.sessions) as s:
-        starts = [m.message for m in s.query(JobLog).filter(JobLog.job_id == j).order_by(JobLog.id) if m.message.startswith("started")]
+        starts = [
+            m.message
+            for m in s.query(JobLog).filter(JobLog.job_id == j).order_by(JobLog.id)
+            if m.message.startswith("started")
+        ]
     assert starts == ["started on worker w1 (attempt 1)", "started on worker w2 (attempt 2)"]
 
 
@@ -147,7 +172,9 @@ def test_worker_runs_jobs_and_records_failures(services: Services, counting_kind
     assert any("Traceback" in m for m in log)
 
 
-def test_cancelling_a_running_job_stops_it_at_its_next_step(services: Services, counting_kind) -> None:
+def test_cancelling_a_running_job_stops_it_at_its_next_step(
+    services: Services, counting_kind
+) -> None:
     j = add_job(services, params={"steps": 500})  # 10 s if nobody stops it
     worker = Worker(services)
     worker.start()
@@ -213,7 +240,9 @@ def one_kind(monkeypatch, name: str, compute) -> str:
     return name
 
 
-def test_a_renewal_that_began_before_the_claim_does_not_lose_the_job(services: Services, monkeypatch) -> None:
+def test_a_renewal_that_began_before_the_claim_does_not_lose_the_job(
+    services: Services, monkeypatch
+) -> None:
     """The heartbeat thread renews leases while the executor thread claims a job: a renewal
     that began before the claim does not list the job, and must not count as its loss (on a
     loaded machine this once stranded a job as running with nobody on it)."""
@@ -231,18 +260,27 @@ def test_a_renewal_that_began_before_the_claim_does_not_lose_the_job(services: S
     assert job(services, j).status == "succeeded" and job(services, j).result == {"done": True}
 
 
-def test_a_job_seen_as_lost_but_still_owned_goes_back_to_the_queue(services: Services, monkeypatch) -> None:
+def test_a_job_seen_as_lost_but_still_owned_goes_back_to_the_queue(
+    services: Services, monkeypatch
+) -> None:
     """If the executor believes it lost a job the database still gives it, the job is handed
     back rather than left running forever (its lease would be renewed by every beat)."""
     worker = Worker(services)
     worker._register()
 
     def compute(inputs: ParamsInputs, workdir: Path, ctx: JobContext) -> ResultOutputs:
-        worker.on_leases(set(), set(), time.monotonic())  # a renewal after the claim, without the job
+        worker.on_leases(
+            set(), set(), time.monotonic()
+        )  # a renewal after the claim, without the job
         ctx.progress(0.5, "half way", force=True)  # raises JobInterrupted
         return ResultOutputs({"done": True})
 
     j = add_job(services, kind=one_kind(monkeypatch, "seen_lost", compute))
     assert worker.run_once()
     back = job(services, j)
-    assert back.status == "queued" and back.worker_id is None and back.attempts == 0 and back.result is None
+    assert (
+        back.status == "queued"
+        and back.worker_id is None
+        and back.attempts == 0
+        and back.result is None
+    )

@@ -110,21 +110,45 @@ class Keyed:
 
 @pytest.fixture(scope="module")
 def keyed(request, tmp_path_factory, db_backend: str) -> Iterator[Keyed]:
-    settings = test_settings(tmp_path_factory.mktemp("keys"), database_url=database_url(request, db_backend), embedded_worker=False)
+    settings = test_settings(
+        tmp_path_factory.mktemp("keys"),
+        database_url=database_url(request, db_backend),
+        embedded_worker=False,
+    )
     live = start_server(settings)
     k = Keyed(live, {"admin-settings": API_KEY})
-    for name, scope in (("device", "device"), ("other-device", "device"), ("operator", "operator"), ("admin", "admin")):
+    for name, scope in (
+        ("device", "device"),
+        ("other-device", "device"),
+        ("operator", "operator"),
+        ("admin", "admin"),
+    ):
         k.keys[name] = k.make_key(f"walk-{name}", scope)["key"]
     k.keys["revoked"] = k.make_key("walk-revoked", "admin")["key"]
     k.keys["expired"] = k.make_key("walk-expired", "admin", expires_in="1m")["key"]
     with k.http(API_KEY) as admin:
         assert admin.post("/api/v1/keys/walk-revoked/revoke").status_code == 200
     with session_scope(live.services.sessions) as db:  # expired a minute ago
-        db.execute(update(ApiKey).where(ApiKey.name == "walk-expired").values(expires_at=dt.datetime(2000, 1, 1)))
-    for who, scene in (("device", "dev-scene"), ("other-device", "other-scene"), ("operator", "op-scene")):
+        db.execute(
+            update(ApiKey)
+            .where(ApiKey.name == "walk-expired")
+            .values(expires_at=dt.datetime(2000, 1, 1))
+        )
+    for who, scene in (
+        ("device", "dev-scene"),
+        ("other-device", "other-scene"),
+        ("operator", "op-scene"),
+    ):
         with k.http(who) as c:
             assert c.post("/api/v1/scenes", json={"name": scene}).status_code == 201
-            assert c.post(f"/api/v1/scenes/{scene}/frames", files=frame_files(len(scene)), data={"name": "0"}).status_code == 201
+            assert (
+                c.post(
+                    f"/api/v1/scenes/{scene}/frames",
+                    files=frame_files(len(scene)),
+                    data={"name": "0"},
+                ).status_code
+                == 201
+            )
     yield k
     live.stop()
 
@@ -154,7 +178,9 @@ def _request(c: httpx.Client, method: str, path: str) -> httpx.Response:
 
 def test_every_route_refuses_every_key_below_its_scope(keyed: Keyed) -> None:
     operations = _operations(keyed.live)
-    assert sorted(operations) == sorted(REQUIRED_SCOPE), "classify every route of the OpenAPI document in REQUIRED_SCOPE"
+    assert sorted(operations) == sorted(REQUIRED_SCOPE), (
+        "classify every route of the OpenAPI document in REQUIRED_SCOPE"
+    )
     seen = 0
     for method, path in operations:
         needed = REQUIRED_SCOPE[(method, path)]
@@ -167,7 +193,12 @@ def test_every_route_refuses_every_key_below_its_scope(keyed: Keyed) -> None:
                 r = _request(c, method, path)
             assert r.status_code == 401, (method, path, who, r.status_code, r.text[:200])
             assert r.json()["error"]["code"] == "unauthorized"
-        for who, scope in (("device", "device"), ("operator", "operator"), ("admin", "admin"), ("admin-settings", "admin")):
+        for who, scope in (
+            ("device", "device"),
+            ("operator", "operator"),
+            ("admin", "admin"),
+            ("admin-settings", "admin"),
+        ):
             with keyed.http(who) as c:
                 r = _request(c, method, path)
             seen += 1
@@ -175,7 +206,13 @@ def test_every_route_refuses_every_key_below_its_scope(keyed: Keyed) -> None:
                 assert r.status_code == 403, (method, path, who, r.status_code, r.text[:200])
                 assert f"needs scope {needed!r}" in r.json()["error"]["message"]
             else:  # reached the route: whatever it answers, it is not the key that is refused
-                assert r.status_code not in (401, 403), (method, path, who, r.status_code, r.text[:200])
+                assert r.status_code not in (401, 403), (
+                    method,
+                    path,
+                    who,
+                    r.status_code,
+                    r.text[:200],
+                )
     assert seen == 4 * (len(REQUIRED_SCOPE) - 1)
 
 
@@ -184,7 +221,12 @@ def test_the_secret_is_stored_only_as_its_hash(keyed: Keyed) -> None:
     key = made["key"]
     assert key.startswith("csa_") and len(key) >= 4 + 43  # 32 random bytes, URL-safe base64
     assert made["prefix"] == key[:12] and made["state"] == "active"
-    assert dt.timedelta(days=29, hours=23) < dt.datetime.fromisoformat(made["expires_at"]) - dt.datetime.fromisoformat(made["created_at"]) <= dt.timedelta(days=30)
+    assert (
+        dt.timedelta(days=29, hours=23)
+        < dt.datetime.fromisoformat(made["expires_at"])
+        - dt.datetime.fromisoformat(made["created_at"])
+        <= dt.timedelta(days=30)
+    )
     with keyed.live.services.sessions() as db:
         row = db.scalar(select(ApiKey).where(ApiKey.name == "hash-check"))
         assert row.secret_sha256 == hashlib.sha256(key.encode()).hexdigest() == hash_secret(key)
@@ -211,7 +253,14 @@ def test_revocation_and_expiry_take_effect_at_the_next_request(keyed: Keyed) -> 
     with keyed.http(made["key"]) as c:
         assert c.get("/api/v1/scenes").status_code == 200
         with session_scope(keyed.live.services.sessions) as db:
-            db.execute(update(ApiKey).where(ApiKey.name == "expiring").values(expires_at=dt.datetime.now(dt.UTC).replace(tzinfo=None) - dt.timedelta(seconds=1)))
+            db.execute(
+                update(ApiKey)
+                .where(ApiKey.name == "expiring")
+                .values(
+                    expires_at=dt.datetime.now(dt.UTC).replace(tzinfo=None)
+                    - dt.timedelta(seconds=1)
+                )
+            )
         r = c.get("/api/v1/scenes")
         assert r.status_code == 401 and "expired" in r.json()["error"]["message"]
     with keyed.http("admin") as admin:
@@ -225,7 +274,9 @@ def test_revocation_and_expiry_take_effect_at_the_next_request(keyed: Keyed) -> 
         r = admin.post("/api/v1/keys", json={"name": "x1", "scope": "device", "expires_in": "soon"})
         assert r.status_code == 422 and r.json()["error"]["field"] == "expires_in"
         r = admin.post("/api/v1/keys", json={"name": "data-dir-api-key", "scope": "admin"})
-        assert r.status_code == 422 and r.json()["error"]["field"] == "name"  # the generated key's name
+        assert (
+            r.status_code == 422 and r.json()["error"]["field"] == "name"
+        )  # the generated key's name
         r = admin.post("/api/v1/keys", json={"name": "x2", "scope": "root"})
         assert r.status_code == 422 and "scope" in r.json()["error"]["field"]
         assert admin.post("/api/v1/keys/no-such/revoke").status_code == 404
@@ -256,7 +307,11 @@ def test_a_device_key_reaches_only_its_own_scenes(keyed: Keyed) -> None:
         assert {"dev-scene", "other-scene", "op-scene"} <= names
         assert c.get("/api/v1/scenes/other-scene/frames/0/color").status_code == 200
     with keyed.live.services.sessions() as db:
-        owners = dict(db.execute(select(Scene.name, ApiKey.name).join(ApiKey, ApiKey.id == Scene.owner_key_id)).all())
+        owners = dict(
+            db.execute(
+                select(Scene.name, ApiKey.name).join(ApiKey, ApiKey.id == Scene.owner_key_id)
+            ).all()
+        )
     assert owners["dev-scene"] == "walk-device" and owners["other-scene"] == "walk-other-device"
 
 
@@ -267,7 +322,9 @@ def test_the_audit_log_records_writes(keyed: Keyed) -> None:
         assert c.delete("/api/v1/scenes/audited").status_code == 403
         assert c.get("/api/v1/scenes").status_code == 200  # a read: not recorded
     with keyed.http(None) as c:
-        assert c.post("/api/v1/scenes", json={"name": "anonymous"}).status_code == 401  # no key: not recorded
+        assert (
+            c.post("/api/v1/scenes", json={"name": "anonymous"}).status_code == 401
+        )  # no key: not recorded
     with keyed.http("device") as c:
         r = c.get("/api/v1/audit")
         assert r.status_code == 403 and "needs scope 'admin'" in r.json()["error"]["message"]
@@ -277,18 +334,38 @@ def test_the_audit_log_records_writes(keyed: Keyed) -> None:
         newest = r.json()
         total = int(r.headers["X-Total-Count"])
         whole = c.get("/api/v1/audit", params={"key_name": "walk-device"}).json()
-    assert len(whole) == total and [e["id"] for e in whole] == sorted((e["id"] for e in whole), reverse=True)
+    assert len(whole) == total and [e["id"] for e in whole] == sorted(
+        (e["id"] for e in whole), reverse=True
+    )
     refused, created = newest
-    assert (refused["method"], refused["route"], refused["path"], refused["status"]) == ("DELETE", "/api/v1/scenes/{scene_ref}", "/api/v1/scenes/audited", 403)
+    assert (refused["method"], refused["route"], refused["path"], refused["status"]) == (
+        "DELETE",
+        "/api/v1/scenes/{scene_ref}",
+        "/api/v1/scenes/audited",
+        403,
+    )
     assert refused["ids"] == {"scene_ref": "audited"} and refused["scope"] == "device"
-    assert (created["method"], created["route"], created["status"]) == ("POST", "/api/v1/scenes", 201)
-    assert created["ids"] == {"created_id": made.json()["id"]} and created["key_name"] == "walk-device"
+    assert (created["method"], created["route"], created["status"]) == (
+        "POST",
+        "/api/v1/scenes",
+        201,
+    )
+    assert (
+        created["ids"] == {"created_id": made.json()["id"]} and created["key_name"] == "walk-device"
+    )
     with keyed.live.services.sessions() as db:
         entries = list(db.scalars(select(AuditEntry)))
     assert all(e.method in ("POST", "PUT", "PATCH", "DELETE") for e in entries)
-    assert not any(e.route in ("/api/v1/predict", "/api/v1/scenes/{scene_ref}/render") for e in entries)
+    assert not any(
+        e.route in ("/api/v1/predict", "/api/v1/scenes/{scene_ref}/render") for e in entries
+    )
     assert not any("anonymous" in e.path for e in entries)
-    assert any(e.key_name == "CSA_API_KEYS#1" and e.route == "/api/v1/keys/{key_ref}/revoke" and e.ids == {"key_ref": "walk-revoked"} for e in entries)
+    assert any(
+        e.key_name == "CSA_API_KEYS#1"
+        and e.route == "/api/v1/keys/{key_ref}/revoke"
+        and e.ids == {"key_ref": "walk-revoked"}
+        for e in entries
+    )
 
 
 def _cli(capsys, *args: str) -> tuple[int, str, str]:
@@ -299,8 +376,21 @@ def _cli(capsys, *args: str) -> tuple[int, str, str]:
 
 def test_csa_keys_commands(keyed: Keyed, capsys) -> None:
     settings = keyed.live.settings
-    where = ["--data-dir", str(settings.data_dir)] + (["--database-url", settings.database_url] if settings.database_url else [])
-    code, out, err = _cli(capsys, "keys", *where, "create", "--scope", "device", "--name", "robot-7", "--expires", "30d")
+    where = ["--data-dir", str(settings.data_dir)] + (
+        ["--database-url", settings.database_url] if settings.database_url else []
+    )
+    code, out, err = _cli(
+        capsys,
+        "keys",
+        *where,
+        "create",
+        "--scope",
+        "device",
+        "--name",
+        "robot-7",
+        "--expires",
+        "30d",
+    )
     assert code == 0 and "store it now" in err
     key = out.strip()
     assert key.startswith("csa_") and "\n" not in key
@@ -318,7 +408,18 @@ def test_csa_keys_commands(keyed: Keyed, capsys) -> None:
     assert code == 0 and "robot-7" not in out
     code, _, err = _cli(capsys, "keys", *where, "create", "--scope", "device", "--name", "robot-7")
     assert code == 1 and "robot-7" in err and "exists" in err
-    code, _, err = _cli(capsys, "keys", *where, "create", "--scope", "device", "--name", "robot-8", "--expires", "3x")
+    code, _, err = _cli(
+        capsys,
+        "keys",
+        *where,
+        "create",
+        "--scope",
+        "device",
+        "--name",
+        "robot-8",
+        "--expires",
+        "3x",
+    )
     assert code == 1 and "not a duration" in err
     code, _, err = _cli(capsys, "keys", *where, "revoke", "nobody")
     assert code == 1 and "not found" in err
@@ -342,9 +443,14 @@ def test_the_dashboard_signs_in_by_key_and_shows_what_the_scope_allows(keyed: Ke
         for url in ("/ui/jobs", "/ui/audit", "/ui/api/v1/jobs", "/ui/scenes/dev-scene"):
             assert c.get(url).status_code == 403, url
         csrf = c.get("/ui/scenes").text.split('name="csrf-token" content="')[1].split('"')[0]
-        r = c.post("/ui/api/v1/scenes", json={"name": "ui-scene"}, headers={**origin, "X-CSRF-Token": csrf})
+        r = c.post(
+            "/ui/api/v1/scenes", json={"name": "ui-scene"}, headers={**origin, "X-CSRF-Token": csrf}
+        )
         assert r.status_code == 201
-        assert "ui-scene" in c.get("/ui/scenes").text and c.get("/ui/scenes/ui-scene").status_code == 200
+        assert (
+            "ui-scene" in c.get("/ui/scenes").text
+            and c.get("/ui/scenes/ui-scene").status_code == 200
+        )
         with keyed.http("admin") as admin:
             assert admin.post("/api/v1/keys/ui-device/revoke").status_code == 200
         r = c.get("/ui/scenes")  # the session ends with its key
@@ -353,7 +459,9 @@ def test_the_dashboard_signs_in_by_key_and_shows_what_the_scope_allows(keyed: Ke
     with closing(signed_in(keyed.keys["admin"])) as c:
         page = c.get("/ui/audit", params={"key_name": "ui-device"})
         assert page.status_code == 200 and 'href="/ui/audit"' in page.text
-        assert "/ui/api/v1/scenes" in page.text and "ui-device" in page.text  # the dashboard's write
+        assert (
+            "/ui/api/v1/scenes" in page.text and "ui-device" in page.text
+        )  # the dashboard's write
         assert "/ui/login" in page.text  # and its sign-in
     with httpx.Client(base_url=keyed.live.url, timeout=30) as c:
         r = c.post("/ui/login", data={"api_key": keyed.keys["revoked"]}, headers=origin)
@@ -374,7 +482,9 @@ def test_the_embedded_default_key_is_an_admin_key(tmp_path: Path, db_backend: st
         assert entry["key_name"] == "data-dir-api-key" and entry["scope"] == "admin"
     finally:
         live.stop()
-    live = start_server(test_settings(tmp_path, api_keys=[], embedded_worker=False))  # the same key after a restart
+    live = start_server(
+        test_settings(tmp_path, api_keys=[], embedded_worker=False)
+    )  # the same key after a restart
     try:
         with httpx.Client(base_url=live.url, headers={"X-API-Key": key}, timeout=30) as c:
             assert c.get("/api/v1/scenes/embedded").status_code == 200

@@ -23,7 +23,9 @@ def _schema_diff(engine) -> list:
         return compare_metadata(MigrationContext.configure(conn), Base.metadata)
 
 
-def test_migrations_match_the_models_and_downgrade(request, db_backend: str, tmp_path: Path) -> None:
+def test_migrations_match_the_models_and_downgrade(
+    request, db_backend: str, tmp_path: Path
+) -> None:
     engine = make_engine(database_url(request, db_backend) or f"sqlite:///{tmp_path / 'csa.db'}")
     assert engine.dialect.name == db_backend
     upgrade_to_head(engine)

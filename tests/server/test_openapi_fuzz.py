@@ -29,7 +29,9 @@ MAX_EXAMPLES = 6
 
 def _operations() -> list[tuple[str, GenerationMode]]:
     """(operation, mode) pairs, read offline; invalid data only where there is input to spoil."""
-    spec = create_app(test_settings(Path(mkdtemp(prefix="csa-spec-")), embedded_worker=False)).openapi()
+    spec = create_app(
+        test_settings(Path(mkdtemp(prefix="csa-spec-")), embedded_worker=False)
+    ).openapi()
     out = []
     for path, ops in spec["paths"].items():
         for method, op in ops.items():
@@ -46,13 +48,19 @@ def _no_server_error(response) -> None:
             body = response.json()
         except ValueError:
             body = {}
-        not_in_build = response.status_code == 501 and body.get("error", {}).get("code") == "not_available"
+        not_in_build = (
+            response.status_code == 501 and body.get("error", {}).get("code") == "not_available"
+        )
         assert not_in_build, f"server error {response.status_code}: {response.text[:500]}"
 
 
 @pytest.fixture(scope="module")
 def fuzz_server(tmp_path_factory) -> Iterator[LiveServer]:
-    live = start_server(test_settings(tmp_path_factory.mktemp("fuzz"), embedded_worker=False, max_frame_upload_bytes=100_000))
+    live = start_server(
+        test_settings(
+            tmp_path_factory.mktemp("fuzz"), embedded_worker=False, max_frame_upload_bytes=100_000
+        )
+    )
     with live.client() as c:  # something for generated references to hit
         c.create_scene("fuzz-scene")
     yield live
@@ -65,16 +73,28 @@ def api_schema(fuzz_server: LiveServer):
     return schemathesis.openapi.from_url(f"{fuzz_server.url}/openapi.json")
 
 
-@pytest.mark.parametrize(("label", "mode"), _operations(), ids=lambda v: v if isinstance(v, str) else v.value)
-def test_generated_requests(api_schema, fuzz_server: LiveServer, label: str, mode: GenerationMode) -> None:
+@pytest.mark.parametrize(
+    ("label", "mode"), _operations(), ids=lambda v: v if isinstance(v, str) else v.value
+)
+def test_generated_requests(
+    api_schema, fuzz_server: LiveServer, label: str, mode: GenerationMode
+) -> None:
     operation = api_schema.find_operation_by_label(label)
     assert operation is not None, label
 
     @given(case=operation.as_strategy(generation_mode=mode))
-    @settings(max_examples=MAX_EXAMPLES, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck))
+    @settings(
+        max_examples=MAX_EXAMPLES,
+        deadline=None,
+        derandomize=True,
+        database=None,
+        suppress_health_check=list(HealthCheck),
+    )
     def run(case) -> None:
         response = case.call(base_url=fuzz_server.url, headers={"X-API-Key": API_KEY}, timeout=30)
         _no_server_error(response)
-        case.validate_response(response, excluded_checks=[not_a_server_error, positive_data_acceptance])
+        case.validate_response(
+            response, excluded_checks=[not_a_server_error, positive_data_acceptance]
+        )
 
     run()

@@ -48,7 +48,13 @@ SCENES = [f"paged-{i}" for i in range(5)]
 # key, then name ("6" before "b").
 FRAME_UPLOADS = ["5", "b", "6", "1", "10"]
 FRAME_ORDER = ["1", "5", "6", "b", "10"]
-MODELS = [("alpha-0", "alpha"), ("beta-0", "beta"), ("alpha-1", "alpha"), ("beta-1", "beta"), ("alpha-2", "alpha")]
+MODELS = [
+    ("alpha-0", "alpha"),
+    ("beta-0", "beta"),
+    ("alpha-1", "alpha"),
+    ("beta-1", "beta"),
+    ("alpha-2", "alpha"),
+]
 ROUTES = {
     "scenes": "/api/v1/scenes",
     "frames": f"/api/v1/scenes/{SCENES[0]}/frames",
@@ -75,7 +81,11 @@ class Paged:
 
 @pytest.fixture(scope="module")
 def paged(request, tmp_path_factory, db_backend: str) -> Iterator[Paged]:
-    settings = test_settings(tmp_path_factory.mktemp("paged"), database_url=database_url(request, db_backend), embedded_worker=False)
+    settings = test_settings(
+        tmp_path_factory.mktemp("paged"),
+        database_url=database_url(request, db_backend),
+        embedded_worker=False,
+    )
     live = start_server(settings)
     with httpx.Client(base_url=live.url, headers={"X-API-Key": API_KEY}, timeout=30) as http:
         for name in SCENES:
@@ -92,7 +102,11 @@ def paged(request, tmp_path_factory, db_backend: str) -> Iterator[Paged]:
             assert r.status_code == 201, r.text[:300]
         with session_scope(live.services.sessions) as s:
             for i, (name, lineage) in enumerate(MODELS):
-                s.add(ModelVersion(name=name, lineage=lineage, arch="x", files={CHECKPOINT_FILE: f"{i:064x}"}))
+                s.add(
+                    ModelVersion(
+                        name=name, lineage=lineage, arch="x", files={CHECKPOINT_FILE: f"{i:064x}"}
+                    )
+                )
         yield Paged(live, http)
     live.stop()
 
@@ -112,7 +126,9 @@ def test_the_whole_list_is_one_page_in_a_stable_order(paged: Paged, route: str) 
     else:
         ids = [row["id"] for row in rows]
         assert ids == sorted(ids)
-        assert [row["name"] for row in rows] == (SCENES if route == "scenes" else [m for m, _ in MODELS])
+        assert [row["name"] for row in rows] == (
+            SCENES if route == "scenes" else [m for m, _ in MODELS]
+        )
     assert rows == paged.whole(route)
 
 
@@ -124,8 +140,13 @@ def test_pages_slice_the_list_without_overlap_or_gap(paged: Paged, route: str, l
         r = paged.http.get(ROUTES[route], params={"limit": limit, "offset": offset})
         assert r.status_code == 200
         assert r.headers[TOTAL_COUNT_HEADER] == str(len(whole))
-        assert [key(route, x) for x in r.json()] == [key(route, x) for x in whole[offset : offset + limit]]
-    pages = [paged.http.get(ROUTES[route], params={"limit": limit, "offset": o}).json() for o in range(0, len(whole), limit)]
+        assert [key(route, x) for x in r.json()] == [
+            key(route, x) for x in whole[offset : offset + limit]
+        ]
+    pages = [
+        paged.http.get(ROUTES[route], params={"limit": limit, "offset": o}).json()
+        for o in range(0, len(whole), limit)
+    ]
     assert list(itertools.chain.from_iterable(pages)) == whole
 
 
@@ -142,7 +163,9 @@ def test_the_total_counts_the_filtered_list(paged: Paged) -> None:
 
 
 @pytest.mark.parametrize("route", list(ROUTES))
-def test_the_largest_offset_reaches_the_database_and_answers_an_empty_page(paged: Paged, route: str) -> None:
+def test_the_largest_offset_reaches_the_database_and_answers_an_empty_page(
+    paged: Paged, route: str
+) -> None:
     r = paged.http.get(ROUTES[route], params={"limit": MAX_LIMIT, "offset": MAX_ID})
     assert r.status_code == 200, r.text[:300]
     assert r.json() == [] and r.headers[TOTAL_COUNT_HEADER] == "5"
@@ -165,7 +188,9 @@ def test_the_largest_offset_reaches_the_database_and_answers_an_empty_page(paged
     ],
 )
 @pytest.mark.parametrize("route", list(ROUTES))
-def test_paging_out_of_range_is_a_422_naming_the_parameter(paged: Paged, route: str, param: str, value: object) -> None:
+def test_paging_out_of_range_is_a_422_naming_the_parameter(
+    paged: Paged, route: str, param: str, value: object
+) -> None:
     r = paged.http.get(ROUTES[route], params={param: value})
     assert r.status_code == 422, r.text[:300]
     assert r.json()["error"]["field"] == param
@@ -182,8 +207,18 @@ def test_the_openapi_document_names_the_parameters_and_the_header(paged: Paged) 
     for path in ("/api/v1/scenes", "/api/v1/scenes/{scene_ref}/frames", "/api/v1/models"):
         op = spec["paths"][path]["get"]
         params = {p["name"]: p["schema"] for p in op["parameters"]}
-        assert params["limit"] == {**params["limit"], "minimum": 1, "maximum": MAX_LIMIT, "default": MAX_LIMIT}
-        assert params["offset"] == {**params["offset"], "minimum": 0, "maximum": MAX_ID, "default": 0}
+        assert params["limit"] == {
+            **params["limit"],
+            "minimum": 1,
+            "maximum": MAX_LIMIT,
+            "default": MAX_LIMIT,
+        }
+        assert params["offset"] == {
+            **params["offset"],
+            "minimum": 0,
+            "maximum": MAX_ID,
+            "default": 0,
+        }
         ok = op["responses"]["200"]
         assert ok["headers"][TOTAL_COUNT_HEADER]["schema"]["type"] == "integer"
         assert ok["content"]["application/json"]["schema"]["type"] == "array"
@@ -215,7 +250,9 @@ def recorded(paged: Paged) -> Iterator[tuple[CSAClient, Recording]]:
         yield c, transport
 
 
-def test_the_client_pages_through_every_list(paged: Paged, recorded: tuple[CSAClient, Recording]) -> None:
+def test_the_client_pages_through_every_list(
+    paged: Paged, recorded: tuple[CSAClient, Recording]
+) -> None:
     c, transport = recorded
     assert [s.id for s in c.scenes()] == [s["id"] for s in paged.whole("scenes")]
     assert [s.name for s in c.scenes()] == SCENES
@@ -232,13 +269,17 @@ def test_the_client_pages_through_every_list(paged: Paged, recorded: tuple[CSACl
     ]
 
 
-def test_the_client_follows_the_cursors_and_keeps_the_filter(paged: Paged, recorded: tuple[CSAClient, Recording]) -> None:
+def test_the_client_follows_the_cursors_and_keeps_the_filter(
+    paged: Paged, recorded: tuple[CSAClient, Recording]
+) -> None:
     c, transport = recorded
     # One full page: its cursor is followed to an empty page (a total read while others
     # delete rows cannot say that all is read).
     assert [m.name for m in c.models(lineage="beta")] == ["beta-0", "beta-1"]
     assert [m.name for m in c.models(lineage="alpha")] == ["alpha-0", "alpha-1", "alpha-2"]
-    assert transport.gets == [("/api/v1/models", w) for w in ("offset 0", "after", "offset 0", "after")]
+    assert transport.gets == [
+        ("/api/v1/models", w) for w in ("offset 0", "after", "offset 0", "after")
+    ]
 
 
 def test_the_client_reads_a_server_without_cursors_by_offset_to_the_total(paged: Paged) -> None:
@@ -250,9 +291,13 @@ def test_the_client_reads_a_server_without_cursors_by_offset_to_the_total(paged:
     def no_cursors(request: httpx.Request) -> httpx.Response:
         seen.append(request)
         offset, limit = int(request.url.params["offset"]), int(request.url.params["limit"])
-        return httpx.Response(200, json=rows[offset : offset + limit], headers={TOTAL_COUNT_HEADER: str(len(rows))})
+        return httpx.Response(
+            200, json=rows[offset : offset + limit], headers={TOTAL_COUNT_HEADER: str(len(rows))}
+        )
 
-    with CSAClient("http://older-server.invalid", api_key=API_KEY, transport=httpx.MockTransport(no_cursors)) as c:
+    with CSAClient(
+        "http://older-server.invalid", api_key=API_KEY, transport=httpx.MockTransport(no_cursors)
+    ) as c:
         c.page_size = 2
         assert [s.name for s in c.scenes()] == SCENES
     assert [r.url.params["offset"] for r in seen] == ["0", "2", "4"]
@@ -268,7 +313,9 @@ def test_the_client_reads_a_server_without_pages_in_one_request(paged: Paged) ->
         seen.append(request)
         return httpx.Response(200, json=rows)
 
-    with CSAClient("http://old-server.invalid", api_key=API_KEY, transport=httpx.MockTransport(old_server)) as c:
+    with CSAClient(
+        "http://old-server.invalid", api_key=API_KEY, transport=httpx.MockTransport(old_server)
+    ) as c:
         c.page_size = 2
         assert [s.name for s in c.scenes()] == SCENES
     assert len(seen) == 1
@@ -286,13 +333,33 @@ def test_the_command_line_lists_every_model_version(paged: Paged, monkeypatch, c
 def test_the_dashboard_pages_still_show_every_row(paged: Paged) -> None:
     """The dashboard reads the lists through the routers' unpaged helpers (it shows and pages
     them itself): its pages render with every scene, frame and model version."""
-    with httpx.Client(base_url=paged.live.url, timeout=30, follow_redirects=False, headers={"Origin": paged.live.url}) as ui:
-        assert ui.post("/ui/login", data={"api_key": API_KEY, "next": "/ui/scenes"}).status_code == 303
-        pages = {path: ui.get(path) for path in ("/ui/scenes", "/ui/work", "/ui/models", "/ui/memory", f"/ui/scenes/{SCENES[0]}")}
+    with httpx.Client(
+        base_url=paged.live.url,
+        timeout=30,
+        follow_redirects=False,
+        headers={"Origin": paged.live.url},
+    ) as ui:
+        assert (
+            ui.post("/ui/login", data={"api_key": API_KEY, "next": "/ui/scenes"}).status_code == 303
+        )
+        pages = {
+            path: ui.get(path)
+            for path in (
+                "/ui/scenes",
+                "/ui/work",
+                "/ui/models",
+                "/ui/memory",
+                f"/ui/scenes/{SCENES[0]}",
+            )
+        }
     assert {path: r.status_code for path, r in pages.items()} == dict.fromkeys(pages, 200)
-    assert all(name in pages["/ui/scenes"].text and name in pages["/ui/work"].text for name in SCENES)
+    assert all(
+        name in pages["/ui/scenes"].text and name in pages["/ui/work"].text for name in SCENES
+    )
     assert all(name in pages["/ui/models"].text for name, _ in MODELS)
-    assert all(f"alt=\"frame {name}\"" in pages[f"/ui/scenes/{SCENES[0]}"].text for name in FRAME_ORDER)
+    assert all(
+        f'alt="frame {name}"' in pages[f"/ui/scenes/{SCENES[0]}"].text for name in FRAME_ORDER
+    )
 
 
 # --- cursors ----------------------------------------------------------------------------------
@@ -325,7 +392,9 @@ def test_a_cursor_keeps_the_filter_of_its_list(paged: Paged) -> None:
     assert [m["name"] for r in pages for m in r.json()] == ["alpha-0", "alpha-1", "alpha-2"]
 
 
-def test_a_cursor_neither_repeats_nor_skips_rows_others_add_or_delete_meanwhile(paged: Paged) -> None:
+def test_a_cursor_neither_repeats_nor_skips_rows_others_add_or_delete_meanwhile(
+    paged: Paged,
+) -> None:
     """A frame uploaded before the page read so far shifts every later offset by one: the
     next page by offset repeats a frame, the cursor's does not; a scene deleted before the
     page read so far shifts them back: the next page by offset skips a scene, the cursor's
@@ -364,7 +433,9 @@ def test_a_cursor_neither_repeats_nor_skips_rows_others_add_or_delete_meanwhile(
         page = http.get("/api/v1/scenes", params={"limit": len(before_x) + 1})
         assert page.json()[-1]["name"] == "cursor-x"
         assert http.delete("/api/v1/scenes/cursor-x").status_code == 204
-        by_offset = http.get("/api/v1/scenes", params={"limit": 1, "offset": len(before_x) + 1}).json()
+        by_offset = http.get(
+            "/api/v1/scenes", params={"limit": 1, "offset": len(before_x) + 1}
+        ).json()
         by_cursor = http.get(page.links["next"]["url"]).json()
         assert [s["name"] for s in by_offset] == ["cursor-z"]  # cursor-y skipped
         assert [s["name"] for s in by_cursor] == ["cursor-y", "cursor-z"]
@@ -391,7 +462,9 @@ def test_a_cursor_this_server_did_not_give_is_a_422_naming_after(paged: Paged, c
     r = paged.http.get(ROUTES["scenes"], params={"after": cursor})
     assert r.status_code == 422, r.text[:300]
     assert r.json()["error"]["field"] == "after"
-    r = paged.http.get(ROUTES["frames"], params={"after": encode_cursor([1])})  # frames: (key, name)
+    r = paged.http.get(
+        ROUTES["frames"], params={"after": encode_cursor([1])}
+    )  # frames: (key, name)
     assert r.status_code == 422 and r.json()["error"]["field"] == "after"
 
 

@@ -215,8 +215,15 @@ def test_stored_bytes_quota_refuses_before_storing_and_survives_a_restart(quotae
         assert r.status_code == 201, r.text
         before = _artifact_count(quotaed.live)
         r = a.post("/api/v1/scenes/bytes-a-scene/frames", files=frame_files(2), data={"name": "1"})
-        error = refused(r, 413, "stored-bytes quota", "'bytes-a'", f"is {DEVICE_QUOTA} bytes",
-                        f"it stores {frame_bytes(1)} bytes", "CSA_QUOTA_STORED_BYTES_DEVICE")
+        error = refused(
+            r,
+            413,
+            "stored-bytes quota",
+            "'bytes-a'",
+            f"is {DEVICE_QUOTA} bytes",
+            f"it stores {frame_bytes(1)} bytes",
+            "CSA_QUOTA_STORED_BYTES_DEVICE",
+        )
         assert error["field"] == "color"
         assert _artifact_count(quotaed.live) == before
         assert not _has_artifact(quotaed.live, frame_parts(2)["color"])
@@ -264,8 +271,9 @@ def test_checkpoints_count_against_the_key_that_registered_them(quotaed: Quotaed
         r = op.post("/api/v1/models", files=files, data={"name": "quota-first"})
         assert r.status_code == 201, r.text
         r = op.post("/api/v1/models", files=files, data={"name": "quota-second"})
-        error = refused(r, 413, "'ckpt-op'", f"it stores {len(data)} bytes",
-                        "CSA_QUOTA_STORED_BYTES_OPERATOR")
+        error = refused(
+            r, 413, "'ckpt-op'", f"it stores {len(data)} bytes", "CSA_QUOTA_STORED_BYTES_OPERATOR"
+        )
         assert error["field"] == "checkpoint"
     with session_scope(quotaed.live.services.sessions) as db:
         names = set(db.scalars(select(ModelVersion.name)))
@@ -290,8 +298,14 @@ def test_queued_jobs_quota_per_scope(quotaed: Quotaed) -> None:
             r = op.post("/api/v1/jobs", json=body)
             assert r.status_code == 202, r.text
         r = other.post("/api/v1/jobs", json=body)  # the limit is the scope's, not one key's
-        refused(r, 429, "queued-jobs quota of scope 'operator'", f"fewer than {QUEUED_JOBS}",
-                "'jobs-other-op'", "CSA_QUOTA_QUEUED_JOBS_OPERATOR")
+        refused(
+            r,
+            429,
+            "queued-jobs quota of scope 'operator'",
+            f"fewer than {QUEUED_JOBS}",
+            "'jobs-other-op'",
+            "CSA_QUOTA_QUEUED_JOBS_OPERATOR",
+        )
         assert "Retry-After" not in r.headers  # the queue drains at the pace of its jobs
     with quotaed.http("jobs-device") as device:  # device keys may not queue jobs at all
         assert device.post("/api/v1/jobs", json=body).status_code == 403

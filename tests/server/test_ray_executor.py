@@ -54,17 +54,26 @@ from tests.server.conftest import (
 NODE_IP = "127.0.0.2"
 RAY_ENV = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"}
 os.environ.update(RAY_ENV)
-ray = pytest.importorskip("ray", reason="the Ray executor needs the ray extra (pip install -e '.[ray]')")
+ray = pytest.importorskip(
+    "ray", reason="the Ray executor needs the ray extra (pip install -e '.[ray]')"
+)
 
 REPO = Path(__file__).resolve().parents[2]
 RAY = Path(sys.executable).with_name("ray")
 
 pytestmark = pytest.mark.skipif(
-    not all(capabilities.available(c) for c in ("seg", "nerf", "adapt")), reason="needs csa_core.seg, nerf and adapt for real jobs"
+    not all(capabilities.available(c) for c in ("seg", "nerf", "adapt")),
+    reason="needs csa_core.seg, nerf and adapt for real jobs",
 )
 
 # Long enough to be killed in the middle, short enough for a test (a few seconds on one core).
-FIT = {"labels": "predictions", "steps": 150, "rays_per_step": 256, "occupancy_resolution": 32, "log2_table_size": 12}
+FIT = {
+    "labels": "predictions",
+    "steps": 150,
+    "rays_per_step": 256,
+    "occupancy_resolution": 32,
+    "log2_table_size": 12,
+}
 LONG_FIT = FIT | {"labels": "ground_truth", "steps": 100_000}
 # A lost node is declared dead after 3 missed health checks 0.5 s apart (Ray's default: 15 s).
 FAST_FAILURE_DETECTION = {"health_check_period_ms": 500, "health_check_failure_threshold": 3}
@@ -113,7 +122,16 @@ class RayCluster:
     def node(cls, args: list[str], log: Path) -> subprocess.Popen:
         with open(log, "ab") as out:
             return subprocess.Popen(
-                [str(RAY), "start", "--block", "--disable-usage-stats", f"--node-ip-address={NODE_IP}", "--num-gpus=0", "--object-store-memory=100000000", *args],
+                [
+                    str(RAY),
+                    "start",
+                    "--block",
+                    "--disable-usage-stats",
+                    f"--node-ip-address={NODE_IP}",
+                    "--num-gpus=0",
+                    "--object-store-memory=100000000",
+                    *args,
+                ],
                 env=cls.env(),
                 cwd=REPO,
                 stdout=out,
@@ -123,7 +141,9 @@ class RayCluster:
 
     def start_worker(self) -> None:
         if self.worker is None or self.worker.poll() is not None:
-            self.worker = self.node([f"--address={self.address}", "--num-cpus=1"], self.logs / "worker.log")
+            self.worker = self.node(
+                [f"--address={self.address}", "--num-cpus=1"], self.logs / "worker.log"
+            )
             self.all_started.append(self.worker)
 
     def kill_worker(self) -> None:
@@ -142,7 +162,13 @@ def ray_cluster(tmp_path_factory) -> Iterator[RayCluster]:
     logs = tmp_path_factory.mktemp("ray-logs")
     port = free_port()
     head = RayCluster.node(
-        ["--head", f"--port={port}", "--num-cpus=1", "--include-dashboard=false", f"--system-config={json.dumps(FAST_FAILURE_DETECTION)}"],
+        [
+            "--head",
+            f"--port={port}",
+            "--num-cpus=1",
+            "--include-dashboard=false",
+            f"--system-config={json.dumps(FAST_FAILURE_DETECTION)}",
+        ],
         logs / "head.log",
     )
     cluster = RayCluster(f"{NODE_IP}:{port}", logs, head, all_started=[head])
@@ -165,7 +191,9 @@ def ray_settings(cluster: RayCluster) -> dict[str, object]:
 
 
 def wait_for_cpus(n: int) -> None:
-    wait_for(lambda: ray.cluster_resources().get("CPU", 0) == n, 120, f"{n} CPUs in the Ray cluster")
+    wait_for(
+        lambda: ray.cluster_resources().get("CPU", 0) == n, 120, f"{n} CPUs in the Ray cluster"
+    )
 
 
 def warm_up_nodes() -> None:
@@ -183,7 +211,15 @@ def warm_up_nodes() -> None:
         return os.getpid()
 
     nodes = [n["NodeID"] for n in ray.nodes() if n["Alive"] and n["Resources"].get("CPU")]
-    ray.get([import_the_jobs.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n, soft=False)).remote() for n in nodes], timeout=120)
+    ray.get(
+        [
+            import_the_jobs.options(
+                scheduling_strategy=NodeAffinitySchedulingStrategy(n, soft=False)
+            ).remote()
+            for n in nodes
+        ],
+        timeout=120,
+    )
 
 
 @dataclass
@@ -206,14 +242,20 @@ def rooms(tmp_path_factory) -> Rooms:
 
 def attempts_on_nodes(c: CSAClient, job_id: int) -> list[tuple[str, int, int]]:
     """(node, pid, attempt) of each attempt the job's log shows, oldest first."""
-    return [(m.group(1), int(m.group(2)), int(m.group(3))) for line in c.job_log(job_id, tail=500) if (m := NODE_LINE.search(line.message))]
+    return [
+        (m.group(1), int(m.group(2)), int(m.group(3)))
+        for line in c.job_log(job_id, tail=500)
+        if (m := NODE_LINE.search(line.message))
+    ]
 
 
 def upload_and_pretrain(c: CSAClient, rooms: Rooms) -> None:
     for folder in (rooms.pretrain, rooms.a, rooms.b):
         scene, _ = c.upload_scene_folder(folder)
         assert scene.num_frames == 8
-    base = c.wait_job(c.pretrain([rooms.pretrain.name], epochs=1, batch_size=4, name="base").id, timeout=180)
+    base = c.wait_job(
+        c.pretrain([rooms.pretrain.name], epochs=1, batch_size=4, name="base").id, timeout=180
+    )
     assert base.status == "succeeded" and c.model("base").is_current
 
 
@@ -224,11 +266,23 @@ def check_nothing_lost(live: LiveServer, c: CSAClient, fits: dict[str, int]) -> 
     assert {scene: bank[scene].job_id for scene in fits} == fits
     services = live.services
     with services.sessions() as s:
-        assert s.scalar(select(func.count(NerfCheckpoint.id))) == len(fits)  # nothing from a lost attempt
+        assert s.scalar(select(func.count(NerfCheckpoint.id))) == len(
+            fits
+        )  # nothing from a lost attempt
         report = services.store.verify(s)
     assert report.ok and report.checked >= 3 * 8 * 3 + 1 + len(fits)
     # A job's scratch folder goes right after the job has ended.
-    wait_for(lambda: not [p for p in services.settings.resolved_work_dir.iterdir() if p.name.startswith("job-")], 30, "no scratch folder left")
+    wait_for(
+        lambda: (
+            not [
+                p
+                for p in services.settings.resolved_work_dir.iterdir()
+                if p.name.startswith("job-")
+            ]
+        ),
+        30,
+        "no scratch folder left",
+    )
 
 
 # The adapted network's val mIoU per set-up: the same inputs, seeds and thread count give the
@@ -239,11 +293,20 @@ ADAPTED_MIOU: dict[str, float] = {}
 def adapt_and_evaluate(c: CSAClient, scene: str, fit_job: int, setup: str) -> None:
     done = c.wait_job(c.adapt(scene, preset="tiny").id, timeout=300)
     new = c.model(done.result["model_id"])
-    assert new.name == "base-step1" and new.parent_id == c.model("base").id and new.adapted_scene == scene and new.is_current
+    assert (
+        new.name == "base-step1"
+        and new.parent_id == c.model("base").id
+        and new.adapted_scene == scene
+        and new.is_current
+    )
     assert 0.0 <= new.metrics["val_miou"] <= 1.0
     entry = c.scene_nerf(scene)
     if done.result["nerf_id"] is not None:
-        assert entry.id == done.result["nerf_id"] and entry.job_id == done.id and entry.labels_source == "adapt:base"
+        assert (
+            entry.id == done.result["nerf_id"]
+            and entry.job_id == done.id
+            and entry.labels_source == "adapt:base"
+        )
     else:  # the collapse guard kept the step's NeRF out of the bank, and said why
         assert entry.job_id == fit_job and done.result["decisions"]
     scored = c.wait_job(c.evaluate(model=new.name, scenes=[scene]).id, timeout=120)
@@ -255,15 +318,24 @@ def adapt_and_evaluate(c: CSAClient, scene: str, fit_job: int, setup: str) -> No
 
 # Ray with PostgreSQL (the scale-out set-up) and the embedded default with SQLite; the Ray-only
 # tests below run Ray with SQLite.
-SETUPS = [pytest.param(("ray", "postgresql"), id="ray-postgresql"), pytest.param(("embedded", "sqlite"), id="embedded-sqlite")]
+SETUPS = [
+    pytest.param(("ray", "postgresql"), id="ray-postgresql"),
+    pytest.param(("embedded", "sqlite"), id="embedded-sqlite"),
+]
 
 
 @pytest.mark.parametrize("setup", SETUPS)
-def test_fits_in_parallel_survive_a_disruption_then_adapt(request, setup, rooms: Rooms, tmp_path: Path) -> None:
+def test_fits_in_parallel_survive_a_disruption_then_adapt(
+    request, setup, rooms: Rooms, tmp_path: Path
+) -> None:
     executor, backend = setup
-    cluster: RayCluster | None = request.getfixturevalue("ray_cluster") if executor == "ray" else None
+    cluster: RayCluster | None = (
+        request.getfixturevalue("ray_cluster") if executor == "ray" else None
+    )
     extra = ray_settings(cluster) if cluster is not None else {}
-    settings = test_settings(tmp_path / "service", database_url=database_url(request, backend), **extra)
+    settings = test_settings(
+        tmp_path / "service", database_url=database_url(request, backend), **extra
+    )
     live = start_server(settings)
     try:
         c = live.client()
@@ -276,7 +348,10 @@ def test_fits_in_parallel_survive_a_disruption_then_adapt(request, setup, rooms:
         # took a few seconds, and on a loaded 2-core machine one had ended before the other
         # began fitting. Four times the steps leave the overlap slack.
         fit = FIT | {"steps": 4 * FIT["steps"]} if cluster is not None else FIT
-        jobs = {scene: c.create_job("fit_nerf", scene=scene, **fit).id for scene in (rooms.a.name, rooms.b.name)}
+        jobs = {
+            scene: c.create_job("fit_nerf", scene=scene, **fit).id
+            for scene in (rooms.a.name, rooms.b.name)
+        }
 
         if cluster is not None:
             # Both fits run at once, one per node; the one on the worker node loses its node.
@@ -294,11 +369,16 @@ def test_fits_in_parallel_survive_a_disruption_then_adapt(request, setup, rooms:
 
             wait_for(both_fitting, 120, "both fits to be fitting at the same time")
             cluster.kill_worker()
-            assert c.health().status == "ok" and c.job(victim).status in ("running", "queued")  # the API answers throughout
+            assert c.health().status == "ok" and c.job(victim).status in (
+                "running",
+                "queued",
+            )  # the API answers throughout
         else:
             # One process: the disruption is an API restart in the middle of the first fit.
             victim = jobs[rooms.a.name]
-            wait_for(lambda: c.job(victim).message.startswith(FITTING), 60, "the first fit to be fitting")
+            wait_for(
+                lambda: c.job(victim).message.startswith(FITTING), 60, "the first fit to be fitting"
+            )
             c.close()
             live.stop()
             live = start_server(settings)
@@ -309,18 +389,31 @@ def test_fits_in_parallel_survive_a_disruption_then_adapt(request, setup, rooms:
         lines = [line.message for line in c.job_log(victim, tail=500)]
         if cluster is not None:
             assert c.job(victim).attempts == 2 and [j.attempts for j in done.values()].count(1) == 1
-            lost = next(m for m in lines if m.startswith("re-queued after attempt 1 of 2: its Ray worker was lost ("))
+            lost = next(
+                m
+                for m in lines
+                if m.startswith("re-queued after attempt 1 of 2: its Ray worker was lost (")
+            )
             assert "Error" in lost  # Ray's reason: NodeDiedError or WorkerCrashedError
             (first, second) = attempts_on_nodes(c, victim)
-            assert first[0] != second[0] and (first[2], second[2]) == (1, 2)  # retried on the other node
+            assert first[0] != second[0] and (first[2], second[2]) == (
+                1,
+                2,
+            )  # retried on the other node
             # The killed attempt's task folder (both nodes share this machine's temporary
             # folder) was removed by the next task here; the second attempt removed its own.
             assert not list(Path(tempfile.gettempdir()).glob(f"csa-job-{victim}-*"))
             # The job's start is its first attempt's (each attempt's start is in the log).
-            starts = [line.time for line in c.job_log(victim, tail=500) if line.message.startswith("started on worker")]
+            starts = [
+                line.time
+                for line in c.job_log(victim, tail=500)
+                if line.message.startswith("started on worker")
+            ]
             assert len(starts) == 2 and c.job(victim).started_at <= starts[0] < starts[1]
         else:
-            assert c.job(victim).attempts == 1  # handed back at shutdown: the attempt does not count
+            assert (
+                c.job(victim).attempts == 1
+            )  # handed back at shutdown: the attempt does not count
             assert any(m == "re-queued: executor shutting down" for m in lines)
         check_nothing_lost(live, c, {scene: j for scene, j in jobs.items()})
         adapt_and_evaluate(c, rooms.a.name, jobs[rooms.a.name], f"{executor}-{backend}")
@@ -450,7 +543,9 @@ def test_every_kind_runs_in_three_phases(
 
 @pytest.fixture(scope="module")
 def ray_service(ray_cluster: RayCluster, rooms: Rooms, tmp_path_factory) -> Iterator[LiveServer]:
-    live = start_server(test_settings(tmp_path_factory.mktemp("ray-service"), **ray_settings(ray_cluster)))
+    live = start_server(
+        test_settings(tmp_path_factory.mktemp("ray-service"), **ray_settings(ray_cluster))
+    )
     try:
         with live.client() as c:
             for folder in (rooms.a, rooms.b):
@@ -467,7 +562,11 @@ def test_cancel_reaches_a_running_ray_task(ray_service: LiveServer, rooms: Rooms
         c.cancel_job(job.id)
         final = c.wait_job(job.id, timeout=60, raise_on_failure=False)
         # Stopped by its own check (not killed after the grace period), with nothing registered.
-        assert final.status == "cancelled" and final.error == "cancelled by request" and final.result is None
+        assert (
+            final.status == "cancelled"
+            and final.error == "cancelled by request"
+            and final.result is None
+        )
         assert final.progress < 0.5
         assert not c.scene(rooms.b.name).has_nerf
 
@@ -478,7 +577,9 @@ def compute_dies(inputs: ParamsInputs, workdir: Path, ctx: JobContext) -> Result
     os._exit(1)
 
 
-def test_a_task_whose_worker_dies_every_time_fails_after_max_attempts(ray_service: LiveServer, monkeypatch) -> None:
+def test_a_task_whose_worker_dies_every_time_fails_after_max_attempts(
+    ray_service: LiveServer, monkeypatch
+) -> None:
     monkeypatch.setitem(KINDS, "dies", job_kind("dies", compute_dies))
     services = ray_service.services
     with services.sessions() as s:
@@ -487,25 +588,41 @@ def test_a_task_whose_worker_dies_every_time_fails_after_max_attempts(ray_servic
     with ray_service.client() as c:
         final = c.wait_job(job_id, timeout=120, raise_on_failure=False)
         assert final.status == "failed" and final.attempts == 2
-        assert final.error.startswith("its Ray worker was lost (") and final.error.endswith("during attempt 2 of 2; not retried")
+        assert final.error.startswith("its Ray worker was lost (") and final.error.endswith(
+            "during attempt 2 of 2; not retried"
+        )
         lines = [line.message for line in c.job_log(job_id)]
-        assert any(m.startswith("re-queued after attempt 1 of 2: its Ray worker was lost") for m in lines)
+        assert any(
+            m.startswith("re-queued after attempt 1 of 2: its Ray worker was lost") for m in lines
+        )
         assert [a for _, _, a in attempts_on_nodes(c, job_id)] == [1, 2]
         assert c.health().status == "ok"
 
 
-def test_api_restart_hands_a_running_ray_job_back_and_runs_it_again(ray_cluster: RayCluster, ray_service: LiveServer, rooms: Rooms) -> None:
+def test_api_restart_hands_a_running_ray_job_back_and_runs_it_again(
+    ray_cluster: RayCluster, ray_service: LiveServer, rooms: Rooms
+) -> None:
     with ray_service.client() as c:
         job = c.create_job("fit_nerf", scene=rooms.a.name, **LONG_FIT)
         wait_for(lambda: c.job(job.id).message.startswith(FITTING), 120, "the fit to be fitting")
     ray_service.stop()  # the module's server; nothing after this test uses it
     with ray_service.services.sessions() as s:
         back = s.get(Job, job.id)
-        assert back.status == "queued" and back.attempts == 0 and back.message == "re-queued: the API is shutting down"
+        assert (
+            back.status == "queued"
+            and back.attempts == 0
+            and back.message == "re-queued: the API is shutting down"
+        )
     live = start_server(ray_service.settings)
     try:
         with live.client() as c:
-            again = wait_for(lambda: (j := c.job(job.id)).status == "running" and j.message.startswith(FITTING) and j, 120, "the job to run again")
+            again = wait_for(
+                lambda: (
+                    (j := c.job(job.id)).status == "running" and j.message.startswith(FITTING) and j
+                ),
+                120,
+                "the job to run again",
+            )
             assert again.attempts == 1 and [a for _, _, a in attempts_on_nodes(c, job.id)] == [1, 1]
             c.cancel_job(job.id)
             assert c.wait_job(job.id, timeout=60, raise_on_failure=False).status == "cancelled"
@@ -517,8 +634,13 @@ def test_api_restart_hands_a_running_ray_job_back_and_runs_it_again(ray_cluster:
 
 
 def test_the_default_executor_never_imports_ray() -> None:
-    code = "import sys; from server.app import create_app; import server.executors.embedded, server.jobs.kinds; print('ray' in sys.modules)"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    code = (
+        "import sys; from server.app import create_app; "
+        "import server.executors.embedded, server.jobs.kinds; print('ray' in sys.modules)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "False"
 
@@ -541,15 +663,19 @@ def test_a_lost_workers_reason_keeps_whole_sentences() -> None:
     from server.executors.ray_cluster import lost_worker_reason
 
     message = (
-        "Task failed due to the node (where this task was running) dying. The node (IP: 127.0.0.2, node ID: "
-        + "ab" * 28
-        + ") has been marked dead because the detector has missed too many heartbeats from it. "
-        "This can happen when a (1) raylet crashes unexpectedly (OOM, etc.) (2) raylet has lagging heartbeats."
+        "Task failed due to the node (where this task was running) dying. "
+        "The node (IP: 127.0.0.2, node ID: " + "ab" * 28 + ") has been marked dead because the "
+        "detector has missed too many heartbeats from it. "
+        "This can happen when a (1) raylet crashes unexpectedly (OOM, etc.) "
+        "(2) raylet has lagging heartbeats."
     )
     reason = lost_worker_reason(NodeDiedError(message))
     assert reason.startswith("its Ray worker was lost (NodeDiedError: Task failed due to the node")
     assert reason.endswith("missed too many heartbeats from it.)") and len(reason) < 360
-    assert queue.brief(message, 70) == "Task failed due to the node (where this task was running) dying."
+    assert (
+        queue.brief(message, 70)
+        == "Task failed due to the node (where this task was running) dying."
+    )
     cut = queue.brief("x " * 20 + "y" * 100, 50)  # no sentence fits: cut at a word, and say so
     assert len(cut) <= 50 and cut.endswith("…") and not cut.endswith(" …")
     assert queue.brief("first line\nsecond line", 100) == "first line" and queue.brief("", 10) == ""
@@ -566,7 +692,11 @@ def test_folders_of_killed_tasks_are_removed_by_the_next_task(tmp_path: Path) ->
     (killed / TASK_OWNER_FILE).write_text(f"{socket.gethostname()} {dead.pid}\n")
     # Killed, not yet reaped by its parent (a worker whose raylet was killed with it).
     zombie = subprocess.Popen([sys.executable, "-c", "pass"])
-    wait_for(lambda: Path(f"/proc/{zombie.pid}/stat").read_text().rpartition(")")[2].split()[0] == "Z", 30, "a zombie")
+    wait_for(
+        lambda: Path(f"/proc/{zombie.pid}/stat").read_text().rpartition(")")[2].split()[0] == "Z",
+        30,
+        "a zombie",
+    )
     unreaped = task_folder(6, tmp_path)
     (unreaped / TASK_OWNER_FILE).write_text(f"{socket.gethostname()} {zombie.pid}\n")
     (killed / "inputs").mkdir()

@@ -41,12 +41,15 @@ class Store:
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory) -> Path:
-    """A tiny NeRF fitted for a moment (tests/nerf/conftest.py; its views hold several classes), saved."""
+    """A tiny NeRF fitted for a moment (tests/nerf/conftest.py; its views hold several classes),
+    saved."""
     from csa_core.nerf.checkpoint import save_checkpoint
     from csa_core.nerf.fit import fit_semantic_nerf
     from tests.nerf.conftest import synthetic_scene, tiny_config
 
-    nerf, _ = fit_semantic_nerf(synthetic_scene(), "label-nyu40", tiny_config(steps=150), device="cpu", progress=False)
+    nerf, _ = fit_semantic_nerf(
+        synthetic_scene(), "label-nyu40", tiny_config(steps=150), device="cpu", progress=False
+    )
     path = tmp_path_factory.mktemp("nerf") / "nerf.safetensors"
     save_checkpoint(nerf, path)
     return path
@@ -101,7 +104,11 @@ class Gate:
             if self.real:
                 return self.real_draw(nerf, pose, intrinsics)
             h, w = intrinsics.height, intrinsics.width
-            return SimpleNamespace(color=np.zeros((h, w, 3), np.uint8), depth=np.zeros((h, w), np.float32), labels=np.zeros((h, w), np.uint8))
+            return SimpleNamespace(
+                color=np.zeros((h, w, 3), np.uint8),
+                depth=np.zeros((h, w), np.float32),
+                labels=np.zeros((h, w), np.uint8),
+            )
         finally:
             with self.lock:
                 self.inside -= 1
@@ -139,7 +146,9 @@ def in_threads(calls: list[Callable[[], Any]]) -> list[Any]:
 
 
 @needs_nerf
-def test_concurrent_renders_of_one_cached_model_give_the_labels_of_sequential_ones(store: Store, checkpoint: Path, monkeypatch) -> None:
+def test_concurrent_renders_of_one_cached_model_give_the_labels_of_sequential_ones(
+    store: Store, checkpoint: Path, monkeypatch
+) -> None:
     import csa_core.nerf.checkpoint as ckpt
 
     intr, poses = views(checkpoint)
@@ -151,7 +160,9 @@ def test_concurrent_renders_of_one_cached_model_give_the_labels_of_sequential_on
 
     loads = []
     real_load = ckpt.load_checkpoint
-    monkeypatch.setattr(ckpt, "load_checkpoint", lambda *a, **kw: loads.append(1) or real_load(*a, **kw))
+    monkeypatch.setattr(
+        ckpt, "load_checkpoint", lambda *a, **kw: loads.append(1) or real_load(*a, **kw)
+    )
     cache = NerfCache(store, 2, "cpu", concurrency=len(poses), queue_seconds=WAIT, threads=1)
     gate = Gate(cache, at_least=len(poses))  # every render inside the model at once
     got = in_threads([lambda pose=pose: cache.render(1, {"n": "a"}, pose, intr) for pose in poses])
@@ -166,7 +177,9 @@ def test_concurrent_renders_of_one_cached_model_give_the_labels_of_sequential_on
 
 
 @needs_nerf
-def test_no_more_renders_run_at_once_than_the_setting_each_on_its_share_of_threads(store: Store, checkpoint: Path) -> None:
+def test_no_more_renders_run_at_once_than_the_setting_each_on_its_share_of_threads(
+    store: Store, checkpoint: Path
+) -> None:
     import torch
 
     intr, poses = views(checkpoint)
@@ -175,7 +188,10 @@ def test_no_more_renders_run_at_once_than_the_setting_each_on_its_share_of_threa
     cache = NerfCache(store, 1, "cpu", concurrency=2, queue_seconds=WAIT, threads=threads)
     gate = Gate(cache, at_least=99, real=False)  # holds every render until opened
     done: list[Any] = []
-    clients = [threading.Thread(target=lambda: done.append(cache.render(1, {"n": "a"}, poses[0], intr))) for _ in range(7)]
+    clients = [
+        threading.Thread(target=lambda: done.append(cache.render(1, {"n": "a"}, poses[0], intr)))
+        for _ in range(7)
+    ]
     for t in clients:
         t.start()
     try:
@@ -198,7 +214,9 @@ def test_no_more_renders_run_at_once_than_the_setting_each_on_its_share_of_threa
 
 
 @needs_nerf
-def test_a_render_that_waits_past_the_queue_time_is_refused_with_retry_after(store: Store, checkpoint: Path) -> None:
+def test_a_render_that_waits_past_the_queue_time_is_refused_with_retry_after(
+    store: Store, checkpoint: Path
+) -> None:
     intr, poses = views(checkpoint)
     cache = NerfCache(store, 1, "cpu", concurrency=1, queue_seconds=0, threads=1)
     gate = Gate(cache, at_least=2, real=False)  # holds the first render until opened
@@ -221,7 +239,9 @@ def test_a_render_that_waits_past_the_queue_time_is_refused_with_retry_after(sto
 
 
 @needs_nerf
-def test_the_cache_keeps_at_most_its_size_and_frees_what_it_evicts(store: Store, checkpoint: Path) -> None:
+def test_the_cache_keeps_at_most_its_size_and_frees_what_it_evicts(
+    store: Store, checkpoint: Path
+) -> None:
     intr, poses = views(checkpoint)
     cache = NerfCache(store, 2, "cpu", concurrency=2, queue_seconds=WAIT, threads=1)
     first = weakref.ref(cache.get(1, {"n": "a"}))
@@ -229,7 +249,9 @@ def test_the_cache_keeps_at_most_its_size_and_frees_what_it_evicts(store: Store,
     cache.get(1, {"n": "a"})  # 1 used last: 2 goes next
     cache.render(3, {"n": "c"}, poses[0], intr)
     assert cache.cached_ids() == [1, 3]
-    results = in_threads([lambda i=i: cache.render(i, {"n": "abc"[i % 3]}, poses[0], intr) for i in range(4, 8)])
+    results = in_threads(
+        [lambda i=i: cache.render(i, {"n": "abc"[i % 3]}, poses[0], intr) for i in range(4, 8)]
+    )
     assert not [r for r in results if isinstance(r, BaseException)], results
     kept = cache.cached_ids()
     assert len(kept) == 2 and set(kept) <= {4, 5, 6, 7}
@@ -248,20 +270,33 @@ def busy_server(tmp_path, checkpoint: Path) -> Iterator[tuple[Any, int]]:
     from server.db.session import session_scope
     from server.memory_bank import add_nerf
 
-    live = start_server(test_settings(tmp_path, embedded_worker=False, render_concurrency=1, render_queue_seconds=0))
+    live = start_server(
+        test_settings(tmp_path, embedded_worker=False, render_concurrency=1, render_queue_seconds=0)
+    )
     try:
         with live.client() as c:
             scene = c.create_scene("render-busy")
         services = live.services
         with session_scope(services.sessions) as s:
-            add_nerf(s, services.store, scene.id, checkpoint, job_id=None, preset="test", labels_source="ground_truth", quality={})
+            add_nerf(
+                s,
+                services.store,
+                scene.id,
+                checkpoint,
+                job_id=None,
+                preset="test",
+                labels_source="ground_truth",
+                quality={},
+            )
         yield live, scene.id
     finally:
         live.stop()
 
 
 @needs_nerf
-def test_the_route_answers_503_with_retry_after_while_its_renders_are_busy(busy_server, checkpoint: Path) -> None:
+def test_the_route_answers_503_with_retry_after_while_its_renders_are_busy(
+    busy_server, checkpoint: Path
+) -> None:
     live, _ = busy_server
     cache: NerfCache = live.server.config.app.state.nerf_cache
     assert cache.concurrency == 1 and cache.queue_seconds == 0
@@ -289,7 +324,9 @@ def test_the_route_answers_503_with_retry_after_while_its_renders_are_busy(busy_
     assert gate.calls == 2 and gate.most == 1
 
 
-def test_the_default_concurrency_follows_the_cores_without_oversubscribing_them(monkeypatch) -> None:
+def test_the_default_concurrency_follows_the_cores_without_oversubscribing_them(
+    monkeypatch,
+) -> None:
     import server.settings as settings_module
 
     for name in ("CSA_RENDER_CONCURRENCY", "CSA_RENDER_QUEUE_SECONDS", "CSA_TORCH_THREADS"):

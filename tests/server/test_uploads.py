@@ -41,7 +41,13 @@ def scene(client: CSAClient) -> str:
 
 
 def upload_first(client: CSAClient, scene: str, **kw):
-    args = {"color": color_png(), "depth": depth_png(), "pose": POSE, "intrinsics": K.encode(), "name": "0"}
+    args = {
+        "color": color_png(),
+        "depth": depth_png(),
+        "pose": POSE,
+        "intrinsics": K.encode(),
+        "name": "0",
+    }
     args.update(kw)
     return client.upload_frame(scene, **args)
 
@@ -71,7 +77,11 @@ def test_upload_is_idempotent_and_conflicts_are_refused(client: CSAClient, scene
         ("depth", {"depth": depth_png(20, 20)}, "size mismatch"),
         ("depth", {"depth": png(np.full((H, W), 9, np.uint8))}, "uint16"),
         ("depth", {"depth": png(np.zeros((H, W, 3), np.uint16))}, "single-channel"),
-        ("pose", {"pose": [[1, 0, 0, 0], [0, 1, 0, float("nan")], [0, 0, 1, 0], [0, 0, 0, 1]]}, "not finite"),
+        (
+            "pose",
+            {"pose": [[1, 0, 0, 0], [0, 1, 0, float("nan")], [0, 0, 1, 0], [0, 0, 0, 1]]},
+            "not finite",
+        ),
         ("pose", {"pose": b"1 0 0\n0 1 0\n0 0 1\n"}, "4x4"),
         ("pose", {"pose": b"1 0 0 0\n0 1 0 0\n0 0 1 0\n1 1 1 1\n"}, "0 0 0 1"),
         ("pose", {"pose": b"a b c d\n"}, "numeric"),
@@ -81,7 +91,9 @@ def test_upload_is_idempotent_and_conflicts_are_refused(client: CSAClient, scene
         ("name", {"name": "../x"}, "frame name"),
     ],
 )
-def test_bad_frames_are_refused_naming_the_field(client: CSAClient, scene: str, field: str, kwargs: dict, message: str) -> None:
+def test_bad_frames_are_refused_naming_the_field(
+    client: CSAClient, scene: str, field: str, kwargs: dict, message: str
+) -> None:
     with pytest.raises(InvalidInput) as e:
         upload_first(client, scene, **kwargs)
     assert e.value.status == 422 and e.value.field == field
@@ -89,7 +101,9 @@ def test_bad_frames_are_refused_naming_the_field(client: CSAClient, scene: str, 
     assert client.frames(scene) == []
 
 
-def test_first_frame_needs_intrinsics_and_later_frames_must_match(client: CSAClient, scene: str) -> None:
+def test_first_frame_needs_intrinsics_and_later_frames_must_match(
+    client: CSAClient, scene: str
+) -> None:
     with pytest.raises(InvalidInput) as e:
         client.upload_frame(scene, color_png(), depth_png(), POSE, name="0")
     assert e.value.field == "intrinsics"
@@ -98,7 +112,14 @@ def test_first_frame_needs_intrinsics_and_later_frames_must_match(client: CSACli
         client.upload_frame(scene, color_png(3, 64, 48), depth_png(64, 48), POSE, name="1")
     assert e.value.field == "color" and "size mismatch" in str(e.value)
     with pytest.raises(InvalidInput) as e:
-        client.upload_frame(scene, color_png(3), depth_png(), POSE, intrinsics=b"40 0 15.5\n0 31 11.5\n0 0 1\n", name="1")
+        client.upload_frame(
+            scene,
+            color_png(3),
+            depth_png(),
+            POSE,
+            intrinsics=b"40 0 15.5\n0 31 11.5\n0 0 1\n",
+            name="1",
+        )
     assert e.value.field == "intrinsics"
 
 
@@ -107,7 +128,10 @@ def test_failed_upload_keeps_what_was_stored(api_server, client: CSAClient, scen
     with pytest.raises(InvalidInput):
         upload_first(client, scene, color=color_png(seed=9), depth=b"junk", replace=True)
     (frame,) = client.frames(scene)
-    assert frame.id == stored.id and frame.model_dump()["color_sha256"] == stored.model_dump()["color_sha256"]
+    assert (
+        frame.id == stored.id
+        and frame.model_dump()["color_sha256"] == stored.model_dump()["color_sha256"]
+    )
     services = api_server.services
     with services.sessions() as s:
         assert services.store.verify(s).ok
@@ -127,11 +151,20 @@ def test_oversize_upload_is_refused_before_it_is_stored(client: CSAClient, scene
 def test_api_key_is_required_everywhere_but_health(api_server) -> None:
     with httpx.Client(base_url=api_server.url, timeout=10) as http:
         assert http.get("/health").status_code == 200
-        for path in ("/api/v1/scenes", "/api/v1/jobs", "/api/v1/models", "/api/v1/memory", "/metrics"):
+        for path in (
+            "/api/v1/scenes",
+            "/api/v1/jobs",
+            "/api/v1/models",
+            "/api/v1/memory",
+            "/metrics",
+        ):
             r = http.get(path)
             assert r.status_code == 401 and r.json()["error"]["code"] == "unauthorized", path
         assert http.get("/api/v1/scenes", headers={"X-API-Key": "wrong"}).status_code == 401
-        assert http.get("/api/v1/scenes", headers={"Authorization": f"Bearer {API_KEY}"}).status_code == 200
+        assert (
+            http.get("/api/v1/scenes", headers={"Authorization": f"Bearer {API_KEY}"}).status_code
+            == 200
+        )
     with api_server.client(api_key="") as anonymous, pytest.raises(AuthError):
         anonymous.scenes()
 
@@ -171,10 +204,14 @@ def test_frame_files_download_with_their_checksum(client: CSAClient, scene: str)
     upload_first(client, scene, color=data)
     with httpx.Client(base_url=client.base_url, headers={"X-API-Key": API_KEY}, timeout=10) as http:
         r = http.get(f"/api/v1/scenes/{scene}/frames/0/color")
-        assert r.status_code == 200 and r.content == data and r.headers["content-type"] == "image/png"
+        assert (
+            r.status_code == 200 and r.content == data and r.headers["content-type"] == "image/png"
+        )
 
 
-def test_deleting_a_scene_removes_its_files_and_keeps_the_others(api_server, client: CSAClient) -> None:
+def test_deleting_a_scene_removes_its_files_and_keeps_the_others(
+    api_server, client: CSAClient
+) -> None:
     keep, drop = f"keep-{next(_names)}", f"drop-{next(_names)}"
     client.create_scene(keep)
     client.create_scene(drop)

@@ -24,10 +24,18 @@ from tests.server.conftest import API_KEY, SCENE_SIZE, free_port, start_server, 
 
 REPO = Path(__file__).resolve().parents[2]
 
-pytestmark = pytest.mark.skipif(not capabilities.available("seg"), reason="needs csa_core.seg for a real job to interrupt")
+pytestmark = pytest.mark.skipif(
+    not capabilities.available("seg"), reason="needs csa_core.seg for a real job to interrupt"
+)
 
 
-def start_api(data_dir: Path, port: int, log: Path, database_url: str | None = None, extra_env: dict[str, str] | None = None) -> subprocess.Popen:
+def start_api(
+    data_dir: Path,
+    port: int,
+    log: Path,
+    database_url: str | None = None,
+    extra_env: dict[str, str] | None = None,
+) -> subprocess.Popen:
     """``csa serve`` in its own process, with the embedded executor (on ``database_url``, and
     ``extra_env`` such as ``CSA_FAULT_POINT`` when given)."""
     env = {
@@ -41,14 +49,31 @@ def start_api(data_dir: Path, port: int, log: Path, database_url: str | None = N
         "PYTHONPATH": str(REPO),
         **(extra_env or {}),
     }
-    args = [sys.executable, "-m", "csa_core.cli.main", "serve", "--data-dir", str(data_dir), "--port", str(port), "--log-level", "warning"]
+    args = [
+        sys.executable,
+        "-m",
+        "csa_core.cli.main",
+        "serve",
+        "--data-dir",
+        str(data_dir),
+        "--port",
+        str(port),
+        "--log-level",
+        "warning",
+    ]
     if database_url is not None:
         args += ["--database-url", database_url]
     with open(log, "ab") as out:
         return subprocess.Popen(args, cwd=log.parent, env=env, stdout=out, stderr=subprocess.STDOUT)
 
 
-def wait_for(predicate, timeout: float, what: str, proc: subprocess.Popen | None = None, log: Path | None = None):
+def wait_for(
+    predicate,
+    timeout: float,
+    what: str,
+    proc: subprocess.Popen | None = None,
+    log: Path | None = None,
+):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
@@ -58,7 +83,10 @@ def wait_for(predicate, timeout: float, what: str, proc: subprocess.Popen | None
         if value:
             return value
         if proc is not None and proc.poll() is not None:
-            raise AssertionError(f"the API exited ({proc.returncode}) while waiting for {what}: {log.read_text()[-2000:] if log else ''}")
+            raise AssertionError(
+                f"the API exited ({proc.returncode}) while waiting for {what}: "
+                f"{log.read_text()[-2000:] if log else ''}"
+            )
         time.sleep(0.1)
     raise AssertionError(f"timed out waiting for {what}")
 
@@ -69,20 +97,32 @@ def test_killed_api_process_leaves_no_running_job_and_loses_nothing(tmp_path: Pa
 
     data_dir = tmp_path / "data"
     log = tmp_path / "api.log"
-    (room,) = synthesize(tmp_path / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="studio", seed=4)
+    (room,) = synthesize(
+        tmp_path / "scenes", scenes=1, frames=8, size=SCENE_SIZE, family="studio", seed=4
+    )
     port = free_port()
     api = start_api(data_dir, port, log)
     try:
         with CSAClient(f"http://127.0.0.1:{port}", api_key=API_KEY, timeout=30) as c:
             wait_for(lambda: c.health().workers_alive == 1, 120, "the API to start", api, log)
             c.upload_scene_folder(room)
-            base = c.wait_job(c.pretrain([room.name], epochs=1, batch_size=4, name="base").id, timeout=300)
+            base = c.wait_job(
+                c.pretrain([room.name], epochs=1, batch_size=4, name="base").id, timeout=300
+            )
             model = c.model(base.result["model_id"])
             long = c.pretrain([room.name], epochs=5000, batch_size=4, name="long")
-            wait_for(lambda: c.job(long.id).message.startswith("training"), 120, "the long job to train", api, log)
+            wait_for(
+                lambda: c.job(long.id).message.startswith("training"),
+                120,
+                "the long job to train",
+                api,
+                log,
+            )
             running = c.job(long.id)
             assert running.status == "running" and running.worker_id.split(":")[1] == str(api.pid)
-            scratch = [p for p in (data_dir / "work").iterdir() if p.name.startswith(f"job-{long.id}-")]
+            scratch = [
+                p for p in (data_dir / "work").iterdir() if p.name.startswith(f"job-{long.id}-")
+            ]
             assert scratch
         api.send_signal(signal.SIGKILL)
         api.wait(timeout=30)
@@ -95,12 +135,18 @@ def test_killed_api_process_leaves_no_running_job_and_loses_nothing(tmp_path: Pa
     live = start_server(test_settings(data_dir))
     try:
         with live.client() as c:
-            again = wait_for(lambda: (j := c.job(long.id)).attempts == 2 and j.status == "running" and j, 60, "the job's second attempt")
+            again = wait_for(
+                lambda: (j := c.job(long.id)).attempts == 2 and j.status == "running" and j,
+                60,
+                "the job's second attempt",
+            )
             assert again.worker_id != running.worker_id
             lines = [line.message for line in c.job_log(long.id)]
             requeued = next(m for m in lines if m.startswith("re-queued after attempt 1 of 2"))
             assert f"(pid {api.pid}) is gone" in requeued
-            assert not any(p.exists() for p in scratch)  # the killed attempt's scratch folder went at start-up
+            assert not any(
+                p.exists() for p in scratch
+            )  # the killed attempt's scratch folder went at start-up
             assert c.cancel_job(long.id).status in ("running", "cancelled")
             final = c.wait_job(long.id, timeout=60, raise_on_failure=False)
             assert final.status == "cancelled" and final.result is None
@@ -124,7 +170,9 @@ def test_lost_job_fails_after_max_attempts(tmp_path: Path) -> None:
     try:
         services = live.services
         with services.sessions() as s:
-            job = queue.enqueue(s, "evaluate", {"model_id": 1, "scene_ids": [], "split": "val"}, None)
+            job = queue.enqueue(
+                s, "evaluate", {"model_id": 1, "scene_ids": [], "split": "val"}, None
+            )
             s.commit()
             job_id = job.id
         for attempt in range(2):
@@ -132,13 +180,19 @@ def test_lost_job_fails_after_max_attempts(tmp_path: Path) -> None:
             dead.wait()
             owner = f"{socket.gethostname()}:{dead.pid}:dead{attempt}"
             with services.sessions() as s:
-                s.add(WorkerRow(id=owner, hostname=socket.gethostname(), pid=dead.pid, mode="embedded"))
+                s.add(
+                    WorkerRow(
+                        id=owner, hostname=socket.gethostname(), pid=dead.pid, mode="embedded"
+                    )
+                )
                 s.commit()
             claimed = queue.claim_next(services.sessions, owner, 30, {"evaluate"})
             assert claimed is not None and claimed.id == job_id
             assert queue.recover_stale_jobs(services.sessions, 2) == [job_id]
         with live.client() as c:
             final = c.job(job_id)
-        assert final.status == "failed" and "is gone during attempt 2 of 2; not retried" in final.error
+        assert (
+            final.status == "failed" and "is gone during attempt 2 of 2; not retried" in final.error
+        )
     finally:
         live.stop()

@@ -69,7 +69,8 @@ class Dashboard:
     def image_loaded(self, selector: str, timeout: float = 60.0) -> tuple[int, int]:
         """(width, height) of an image once the browser has decoded it."""
         self.page.wait_for_function(
-            "sel => { const i = document.querySelector(sel); return i && i.complete && i.naturalWidth > 0; }",
+            "sel => { const i = document.querySelector(sel); return i && i.complete && "
+            "i.naturalWidth > 0; }",
             arg=selector,
             timeout=timeout * 1000,
         )
@@ -197,7 +198,10 @@ def test_scene_page_shows_the_frames_and_the_networks_labels(dash: Dashboard) ->
     assert page.inner_text("#frame-count") == "All 8 frames"
     # Every thumbnail of the page is in view (the strip wraps instead of scrolling sideways).
     assert page.eval_on_selector("#frame-strip", "s => s.scrollWidth <= s.clientWidth")
-    assert page.locator("#class-legend li").count() == 41 and page.locator("#class-legend").is_visible()
+    assert (
+        page.locator("#class-legend li").count() == 41
+        and page.locator("#class-legend").is_visible()
+    )
     page.click('#frame-strip .thumb[data-frame="3"]')
     page.wait_for_selector('#frame-panels[data-frame="3"]')
     dash.page.wait_for_selector("body[data-ready]")
@@ -373,7 +377,13 @@ def test_try_it_labels_an_uploaded_image_and_renders_a_training_pose(dash: Dashb
     image = dash.target_scene / "color" / "5.png"
     dash.goto("/ui/try")
     # Before the first use: no empty pictures and no empty legend.
-    for result in ("#predict-result", "#predict-overlay", "#predict-legend", "#render-result", "#render-color"):
+    for result in (
+        "#predict-result",
+        "#predict-overlay",
+        "#predict-legend",
+        "#render-result",
+        "#render-color",
+    ):
         assert page.locator(result).is_hidden(), result
     page.set_input_files("#predict-file", str(image))
     page.click("#predict-button")

@@ -244,9 +244,7 @@ def test_retry_queues_a_copy_of_a_cancelled_job_and_refuses_others(
         assert c.post("/ui/api/jobs/999999/retry", headers=csrf).status_code == 404
 
 
-def test_a_pretrain_is_not_retried_while_a_copy_of_it_is_queued(
-    live: LiveServer, tmp_path
-) -> None:
+def test_a_pretrain_is_not_retried_while_a_copy_of_it_is_queued(live: LiveServer, tmp_path) -> None:
     """Retry queued a copy without asking whether the job's model name and lineage were still
     free: two retries of a cancelled pre-training queued two jobs that would each register a
     root of one lineage (the second failing on the name after all its training)."""
@@ -317,9 +315,17 @@ def test_dashboard_uploads_get_the_same_body_limits_as_the_api(live: LiveServer)
     c, token = signed_in(live)
     with closing(c):
         photo = b"\xff\xd8" + bytes(2 * 1024 * 1024)  # 2 MiB, not an image the route can read
-        r = c.post("/ui/api/predict-preview", files={"image": ("p.jpg", photo, "image/jpeg")}, headers={"X-CSRF-Token": token})
+        r = c.post(
+            "/ui/api/predict-preview",
+            files={"image": ("p.jpg", photo, "image/jpeg")},
+            headers={"X-CSRF-Token": token},
+        )
         # Past the body limit and the CSRF check, the route itself answers: no model yet.
         assert r.status_code == 404 and "no current model" in r.text, r.text[:300]
         limit = live.settings.max_inference_upload_bytes
-        r = c.post("/ui/api/predict-preview", files={"image": ("p.jpg", bytes(limit + 2 * 1024 * 1024), "image/jpeg")}, headers={"X-CSRF-Token": token})
+        r = c.post(
+            "/ui/api/predict-preview",
+            files={"image": ("p.jpg", bytes(limit + 2 * 1024 * 1024), "image/jpeg")},
+            headers={"X-CSRF-Token": token},
+        )
         assert r.status_code == 413, r.text[:300]

@@ -22,8 +22,22 @@ def rotations(yaw: np.ndarray, tilt: np.ndarray) -> np.ndarray:
     cy, sy = np.cos(yaw), np.sin(yaw)
     ct, st = np.cos(tilt), np.sin(tilt)
     zero, one = np.zeros_like(cy), np.ones_like(cy)
-    rz = np.stack([np.stack([cy, -sy, zero], -1), np.stack([sy, cy, zero], -1), np.stack([zero, zero, one], -1)], -2)
-    rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, ct, -st], -1), np.stack([zero, st, ct], -1)], -2)
+    rz = np.stack(
+        [
+            np.stack([cy, -sy, zero], -1),
+            np.stack([sy, cy, zero], -1),
+            np.stack([zero, zero, one], -1),
+        ],
+        -2,
+    )
+    rx = np.stack(
+        [
+            np.stack([one, zero, zero], -1),
+            np.stack([zero, ct, -st], -1),
+            np.stack([zero, st, ct], -1),
+        ],
+        -2,
+    )
     return rz @ rx
 
 
@@ -51,13 +65,20 @@ class BoxSet:
         return rotations(np.asarray(self.yaw, dtype=np.float64), np.asarray(tilt, dtype=np.float64))
 
     def subset(self, idx: np.ndarray) -> BoxSet:
-        out = BoxSet(self.center[idx], self.half[idx], self.yaw[idx], None if self.tilt is None else self.tilt[idx])
+        out = BoxSet(
+            self.center[idx],
+            self.half[idx],
+            self.yaw[idx],
+            None if self.tilt is None else self.tilt[idx],
+        )
         out.__dict__["rot"] = self.rot[idx]  # carry the cached rotations over
         return out
 
     def corners(self) -> np.ndarray:
         """The 8 corners of every box, (n, 8, 3)."""
-        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+        signs = np.array(
+            [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64
+        )
         local = signs[None] * self.half[:, None, :]
         return np.einsum("nij,nkj->nki", self.rot, local) + self.center[:, None, :]
 
@@ -81,7 +102,9 @@ def _safe_inverse(d: np.ndarray) -> np.ndarray:
     return 1.0 / np.where(np.abs(d) < _TINY, _TINY, d)
 
 
-def slab_intervals(origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet) -> tuple[np.ndarray, np.ndarray]:
+def slab_intervals(
+    origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet
+) -> tuple[np.ndarray, np.ndarray]:
     """Entry and exit parameters of every ray against every box, each (n_rays, n_boxes).
 
     Rays are ``origin + t * dirs``; a ray misses a box where entry > exit. float32 for speed:
@@ -104,7 +127,9 @@ def slab_intervals(origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet) -> tuple
     return near, far
 
 
-def closest_hit(origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet, t_max: np.ndarray, eps: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+def closest_hit(
+    origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet, t_max: np.ndarray, eps: float = 1e-4
+) -> tuple[np.ndarray, np.ndarray]:
     """Nearest box entered by each ray before ``t_max``: (t, box index), index -1 where none."""
     n = len(dirs)
     if len(boxes) == 0:
@@ -118,7 +143,9 @@ def closest_hit(origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet, t_max: np.n
     return np.where(hit, t, np.inf), np.where(hit, idx, -1)
 
 
-def any_hit(origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet, t_end: np.ndarray, eps: float = 1e-4) -> np.ndarray:
+def any_hit(
+    origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet, t_end: np.ndarray, eps: float = 1e-4
+) -> np.ndarray:
     """Whether each ray enters some box with ``eps < t < t_end`` (shadow test), (n_rays,) bool."""
     if len(boxes) == 0:
         return np.zeros(len(dirs), dtype=bool)
@@ -127,7 +154,9 @@ def any_hit(origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet, t_end: np.ndarr
     return blocked.any(axis=1)
 
 
-def face_hit(origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def face_hit(
+    origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet, idx: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Exact float64 entry of rays into their boxes ``idx`` (all >= 0).
 
     Returns ``t`` (m,), the local hit point (m, 3), the face axis (m,) in 0..2 and the
@@ -149,7 +178,9 @@ def face_hit(origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet, idx: np.ndarra
     return t, local, axis, normal
 
 
-def interior_exit(origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def interior_exit(
+    origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where rays from inside the axis-aligned box [lo, hi] leave it.
 
     Returns ``t`` (m,), the exit axis (m,) and the side (m,): +1 for the ``hi`` face, -1 for ``lo``.

@@ -38,7 +38,9 @@ class Target:
     min_dist: float = MIN_TARGET_DIST_M
 
 
-def _segment_clear(clear: np.ndarray, grid: FloorGrid, a: np.ndarray, b: np.ndarray, need: float) -> bool:
+def _segment_clear(
+    clear: np.ndarray, grid: FloorGrid, a: np.ndarray, b: np.ndarray, need: float
+) -> bool:
     n = max(2, int(np.linalg.norm(b - a) / (CELL_M / 2)) + 1)
     pts = a + np.linspace(0.0, 1.0, n)[:, None] * (b - a)
     i, j = grid.cell_of(pts)
@@ -52,7 +54,15 @@ def _catmull_rom(points: np.ndarray, per_segment: int = 40) -> np.ndarray:
     out = []
     for i in range(1, len(ext) - 2):
         p0, p1, p2, p3 = ext[i - 1], ext[i], ext[i + 1], ext[i + 2]
-        out.append(0.5 * ((2 * p1) + (-p0 + p2) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t**2 + (-p0 + 3 * p1 - 3 * p2 + p3) * t**3))
+        out.append(
+            0.5
+            * (
+                (2 * p1)
+                + (-p0 + p2) * t
+                + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t**2
+                + (-p0 + 3 * p1 - 3 * p2 + p3) * t**3
+            )
+        )
     out.append(points[-1:])
     return np.concatenate(out)
 
@@ -146,7 +156,9 @@ def _resample_route(route: np.ndarray, step: float, n: int) -> tuple[np.ndarray,
     q = np.where(forward, q, 2 * total - q)
     x, y = np.interp(q, s, route[:, 0]), np.interp(q, s, route[:, 1])
     ahead = np.clip(q + 0.05, 0.0, total)
-    tan = np.stack([np.interp(ahead, s, route[:, 0]) - x, np.interp(ahead, s, route[:, 1]) - y], axis=-1)
+    tan = np.stack(
+        [np.interp(ahead, s, route[:, 0]) - x, np.interp(ahead, s, route[:, 1]) - y], axis=-1
+    )
     tan[~forward] *= -1
     norm = np.linalg.norm(tan, axis=1, keepdims=True)
     tan = np.where(norm > 1e-9, tan / np.maximum(norm, 1e-9), [1.0, 0.0])
@@ -157,7 +169,14 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def _choose_targets(pos: np.ndarray, heading: np.ndarray, targets: list[Target], hold: int, half_fov: float, rng: np.random.Generator) -> list[Target]:
+def _choose_targets(
+    pos: np.ndarray,
+    heading: np.ndarray,
+    targets: list[Target],
+    hold: int,
+    half_fov: float,
+    rng: np.random.Generator,
+) -> list[Target]:
     """One target per block of ``hold`` frames.
 
     Prefers targets that need little turning, a couple of metres away, whose class and
@@ -165,7 +184,14 @@ def _choose_targets(pos: np.ndarray, heading: np.ndarray, targets: list[Target],
     counts as seen), so a short walk still shows many classes.
     """
     if not targets:
-        targets = [Target(np.array([pos[0, 0] + heading[0, 0], pos[0, 1] + heading[0, 1], 1.0]), "none", -1, 0.0)]
+        targets = [
+            Target(
+                np.array([pos[0, 0] + heading[0, 0], pos[0, 1] + heading[0, 1], 1.0]),
+                "none",
+                -1,
+                0.0,
+            )
+        ]
     pts = np.array([t.point[:2] for t in targets])
     min_dist = np.array([t.min_dist for t in targets])
     seen: dict[str, float] = {}
@@ -177,8 +203,15 @@ def _choose_targets(pos: np.ndarray, heading: np.ndarray, targets: list[Target],
         d = pts - p
         dist = np.hypot(d[:, 0], d[:, 1])
         ang = np.arctan2(d[:, 1], d[:, 0])
-        novelty = np.array([1.2 * seen.get(t.label, 0.0) + 0.7 * seen_group.get(t.group, 0.0) for t in targets])
-        score = np.abs(_wrap(ang - gaze)) + novelty + 0.4 * np.maximum(0.0, 2.0 - dist) + 0.6 * rng.random(len(targets))
+        novelty = np.array(
+            [1.2 * seen.get(t.label, 0.0) + 0.7 * seen_group.get(t.group, 0.0) for t in targets]
+        )
+        score = (
+            np.abs(_wrap(ang - gaze))
+            + novelty
+            + 0.4 * np.maximum(0.0, 2.0 - dist)
+            + 0.6 * rng.random(len(targets))
+        )
         score[dist < min_dist] = np.inf
         k = int(np.argmin(score))
         if not np.isfinite(score[k]):
@@ -211,7 +244,9 @@ def _rate_limit(x: np.ndarray, max_step: float) -> np.ndarray:
 
 def look_at_pose(position: np.ndarray, yaw: float, pitch: float) -> np.ndarray:
     """Camera-to-world pose (OpenCV axes: x right, y down, z forward) in a z-up world."""
-    fwd = np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), math.sin(pitch)])
+    fwd = np.array(
+        [math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), math.sin(pitch)]
+    )
     right = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
     down = np.cross(fwd, right)
     pose = np.eye(4)
@@ -219,7 +254,9 @@ def look_at_pose(position: np.ndarray, yaw: float, pitch: float) -> np.ndarray:
     return pose
 
 
-def camera_walk(room: Room, family: RoomFamily, frames: int, rng: np.random.Generator) -> np.ndarray:
+def camera_walk(
+    room: Room, family: RoomFamily, frames: int, rng: np.random.Generator
+) -> np.ndarray:
     """Poses (frames, 4, 4) of a smooth walk through ``room`` looking at its furniture."""
     route = walk_route(room, family.step_m * frames, rng)
     pos2, heading = _resample_route(route, family.step_m, frames)
@@ -228,7 +265,9 @@ def camera_walk(room: Room, family: RoomFamily, frames: int, rng: np.random.Gene
     pos = np.column_stack([pos2, height + bob])
 
     hold = family.target_frames
-    chosen = _choose_targets(pos2, heading, furniture_targets(room), hold, math.radians(family.hfov_deg) / 2, rng)
+    chosen = _choose_targets(
+        pos2, heading, furniture_targets(room), hold, math.radians(family.hfov_deg) / 2, rng
+    )
     look = np.zeros((frames, 3))
     for i in range(frames):
         b = i // hold
@@ -240,7 +279,9 @@ def camera_walk(room: Room, family: RoomFamily, frames: int, rng: np.random.Gene
     yaw = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
     pitch = np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
     yaw = _rate_limit(_smooth(yaw, 2.0), math.radians(family.max_turn_deg))
-    pitch = _rate_limit(np.clip(_smooth(pitch, 2.0), math.radians(-35), math.radians(12)), math.radians(2.0))
+    pitch = _rate_limit(
+        np.clip(_smooth(pitch, 2.0), math.radians(-35), math.radians(12)), math.radians(2.0)
+    )
     return np.stack([look_at_pose(pos[i], float(yaw[i]), float(pitch[i])) for i in range(frames)])
 
 
@@ -272,7 +313,9 @@ def _random_target(room: Room, rng: np.random.Generator) -> np.ndarray:
     return rng.random(3) * np.array([room.width, room.depth, min(2.0, room.height)])
 
 
-def random_views(room: Room, family: RoomFamily, frames: int, rng: np.random.Generator) -> np.ndarray:
+def random_views(
+    room: Room, family: RoomFamily, frames: int, rng: np.random.Generator
+) -> np.ndarray:
     """Poses (frames, 4, 4) spread at random through the room's free space, each looking at a
     random target.
 
@@ -294,7 +337,9 @@ def random_views(room: Room, family: RoomFamily, frames: int, rng: np.random.Gen
         raise NoPathError("no free floor space for the camera")
     cells = np.stack([grid.gx[free], grid.gy[free]], axis=-1)
     solids, sources = room_solids(room)
-    is_wall = np.array([room.groups[gi].group.mount == "onwall" for gi, _ in sources] + [True], dtype=bool)
+    is_wall = np.array(
+        [room.groups[gi].group.mount == "onwall" for gi, _ in sources] + [True], dtype=bool
+    )
     top = min(RANDOM_HEIGHT_M[1], room.height - 0.3)
     poses = np.zeros((frames, 4, 4))
     for i in range(frames):
@@ -333,7 +378,9 @@ def random_views(room: Room, family: RoomFamily, frames: int, rng: np.random.Gen
 CAPTURES = ("walk", "random")
 
 
-def capture_poses(room: Room, family: RoomFamily, frames: int, rng: np.random.Generator, capture: str = "walk") -> np.ndarray:
+def capture_poses(
+    room: Room, family: RoomFamily, frames: int, rng: np.random.Generator, capture: str = "walk"
+) -> np.ndarray:
     """Camera poses of a capture mode: "walk" (:func:`camera_walk`) or "random"
     (:func:`random_views`)."""
     if capture == "random":

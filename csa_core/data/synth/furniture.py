@@ -45,7 +45,12 @@ class Part:
 
     def rotation(self) -> np.ndarray:
         """Part-to-group rotation (3, 3)."""
-        cy, sy, ct, st = math.cos(self.yaw), math.sin(self.yaw), math.cos(self.tilt), math.sin(self.tilt)
+        cy, sy, ct, st = (
+            math.cos(self.yaw),
+            math.sin(self.yaw),
+            math.cos(self.tilt),
+            math.sin(self.tilt),
+        )
         return np.array([[cy, -sy * ct, sy * st], [sy, cy * ct, -cy * st], [0.0, st, ct]])
 
     def extent(self) -> np.ndarray:
@@ -81,12 +86,36 @@ class Group:
         return lo, hi
 
 
-def box(x0: float, x1: float, y0: float, y1: float, z0: float, z1: float, label: str, role: str = "body", instance: int = 0) -> Part:
+def box(
+    x0: float,
+    x1: float,
+    y0: float,
+    y1: float,
+    z0: float,
+    z1: float,
+    label: str,
+    role: str = "body",
+    instance: int = 0,
+) -> Part:
     """A part from its extents along x, y and z."""
-    return Part(((x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2), ((x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2), label, role, 0.0, instance)
+    return Part(
+        ((x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2),
+        ((x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2),
+        label,
+        role,
+        0.0,
+        instance,
+    )
 
 
-def rod(p0: tuple[float, float, float], p1: tuple[float, float, float], radius: float, label: str, role: str = "frame", instance: int = 0) -> Part:
+def rod(
+    p0: tuple[float, float, float],
+    p1: tuple[float, float, float],
+    radius: float,
+    label: str,
+    role: str = "frame",
+    instance: int = 0,
+) -> Part:
     """A round rod (capsule) of ``radius`` around the segment p0-p1; its rounded ends reach
     ``radius`` beyond the end points."""
     a, b = np.asarray(p0, dtype=np.float64), np.asarray(p1, dtype=np.float64)
@@ -99,7 +128,18 @@ def rod(p0: tuple[float, float, float], p1: tuple[float, float, float], radius: 
     return Part(centre, (radius, radius, length / 2), label, role, yaw, instance, tilt, "rod")
 
 
-def arc(centre: tuple[float, float, float], radius: float, a0: float, a1: float, plane: str, pieces: int, thickness: float, label: str, role: str = "frame", instance: int = 0) -> list[Part]:
+def arc(
+    centre: tuple[float, float, float],
+    radius: float,
+    a0: float,
+    a1: float,
+    plane: str,
+    pieces: int,
+    thickness: float,
+    label: str,
+    role: str = "frame",
+    instance: int = 0,
+) -> list[Part]:
     """A curved rod: ``pieces`` capsules joined end to end along a circular arc of ``radius``
     from angle ``a0`` to ``a1`` (radians) around ``centre``, in the "xy" (horizontal) or
     "yz"/"xz" (vertical) plane; the joints are round, so the chain bends smoothly."""
@@ -114,7 +154,14 @@ def arc(centre: tuple[float, float, float], radius: float, a0: float, a1: float,
     return [rod(pts[k], pts[k + 1], thickness, label, role, instance) for k in range(pieces)]
 
 
-def slab(center: tuple[float, float, float], half: tuple[float, float, float], tilt: float, label: str, role: str = "body", instance: int = 0) -> Part:
+def slab(
+    center: tuple[float, float, float],
+    half: tuple[float, float, float],
+    tilt: float,
+    label: str,
+    role: str = "body",
+    instance: int = 0,
+) -> Part:
     """A box tilted by ``tilt`` radians about its own x axis (its top leans towards +y for a
     positive tilt)."""
     return Part(center, half, label, role, 0.0, instance, -tilt)
@@ -130,14 +177,28 @@ def _parts_bounds(parts: tuple[Part, ...] | list[Part]) -> tuple[np.ndarray, np.
     return lo, hi
 
 
-def moved(parts: list[Part] | tuple[Part, ...], dx: float, dy: float, yaw: float = 0.0, dz: float = 0.0, instance: int | None = None) -> list[Part]:
+def moved(
+    parts: list[Part] | tuple[Part, ...],
+    dx: float,
+    dy: float,
+    yaw: float = 0.0,
+    dz: float = 0.0,
+    instance: int | None = None,
+) -> list[Part]:
     """Parts rotated by ``yaw`` about the origin, then shifted by (dx, dy, dz)."""
     c, s = math.cos(yaw), math.sin(yaw)
     out = []
     for p in parts:
         x, y, z = p.center
         inst = p.instance if instance is None else instance
-        out.append(replace(p, center=(c * x - s * y + dx, s * x + c * y + dy, z + dz), yaw=p.yaw + yaw, instance=inst))
+        out.append(
+            replace(
+                p,
+                center=(c * x - s * y + dx, s * x + c * y + dy, z + dz),
+                yaw=p.yaw + yaw,
+                instance=inst,
+            )
+        )
     return out
 
 
@@ -166,7 +227,9 @@ def _u(rng: Rng, lo: float, hi: float) -> float:
 TABLE_LEGS = ("square", "round", "hairpin")
 
 
-def table_parts(rng: Rng, w: float, d: float, h: float, instance: int = 0, legs: str | None = None) -> list[Part]:
+def table_parts(
+    rng: Rng, w: float, d: float, h: float, instance: int = 0, legs: str | None = None
+) -> list[Part]:
     """A table top 2-3.5 cm thick on four legs: square wooden legs 3.5-5 cm with an apron,
     round metal legs 2.4-3.2 cm across, or hairpin legs (two 1.2 cm rods in a V each)."""
     legs = legs or str(rng.choice(TABLE_LEGS, p=(0.45, 0.35, 0.2)))
@@ -178,7 +241,19 @@ def table_parts(rng: Rng, w: float, d: float, h: float, instance: int = 0, legs:
             if legs == "square":
                 leg = _u(rng, 0.035, 0.05) if sx == sy == -1 else parts[1].half[0] * 2
                 x, y = sx * (w / 2 - inset - leg / 2), sy * (d / 2 - inset - leg / 2)
-                parts.append(box(x - leg / 2, x + leg / 2, y - leg / 2, y + leg / 2, 0.0, h - top, "table", "frame", instance))
+                parts.append(
+                    box(
+                        x - leg / 2,
+                        x + leg / 2,
+                        y - leg / 2,
+                        y + leg / 2,
+                        0.0,
+                        h - top,
+                        "table",
+                        "frame",
+                        instance,
+                    )
+                )
             elif legs == "round":
                 r = _u(rng, 0.012, 0.016) if sx == sy == -1 else parts[1].half[0]
                 x, y = sx * (w / 2 - inset - r), sy * (d / 2 - inset - r)
@@ -188,17 +263,43 @@ def table_parts(rng: Rng, w: float, d: float, h: float, instance: int = 0, legs:
                 x, y = sx * (w / 2 - inset - r), sy * (d / 2 - inset - r)
                 foot = (x, y, r)
                 for dx in (0.0, 0.12):
-                    parts.append(rod(foot, (x - sx * dx, y, h - top - r), r, "table", "frame", instance))
+                    parts.append(
+                        rod(foot, (x - sx * dx, y, h - top - r), r, "table", "frame", instance)
+                    )
     if legs == "square":
         apron, t = _u(rng, 0.06, 0.1), 0.02
         leg = parts[1].half[0] * 2
         xi, yi = w / 2 - inset - leg, d / 2 - inset - leg
         for sy in (-1, 1):
             y = sy * (d / 2 - inset - leg / 2)
-            parts.append(box(-xi, xi, y - t / 2, y + t / 2, h - top - apron, h - top, "table", "frame", instance))
+            parts.append(
+                box(
+                    -xi,
+                    xi,
+                    y - t / 2,
+                    y + t / 2,
+                    h - top - apron,
+                    h - top,
+                    "table",
+                    "frame",
+                    instance,
+                )
+            )
         for sx in (-1, 1):
             x = sx * (w / 2 - inset - leg / 2)
-            parts.append(box(x - t / 2, x + t / 2, -yi, yi, h - top - apron, h - top, "table", "frame", instance))
+            parts.append(
+                box(
+                    x - t / 2,
+                    x + t / 2,
+                    -yi,
+                    yi,
+                    h - top - apron,
+                    h - top,
+                    "table",
+                    "frame",
+                    instance,
+                )
+            )
     return parts
 
 
@@ -250,74 +351,184 @@ def chair_parts(rng: Rng, instance: int = 0, design: dict | None = None) -> list
         for sx in (-1, 1):
             for sy in (-1, 1):
                 top = (sx * (w / 2 - 0.06), sy * (d / 2 - 0.06), under - r)
-                parts.append(rod((top[0] + sx * splay, top[1] + sy * splay, r), top, r, "chair", "frame", instance))
+                parts.append(
+                    rod(
+                        (top[0] + sx * splay, top[1] + sy * splay, r),
+                        top,
+                        r,
+                        "chair",
+                        "frame",
+                        instance,
+                    )
+                )
         if g["stretchers"]:
             z = 0.16
             for sx in (-1, 1):
                 x = sx * (w / 2 - 0.06 + splay * (1 - z / under))
-                parts.append(rod((x, -(d / 2 - 0.06) - 0.02, z), (x, d / 2 - 0.06 + 0.02, z), 0.008, "chair", "frame", instance))
+                parts.append(
+                    rod(
+                        (x, -(d / 2 - 0.06) - 0.02, z),
+                        (x, d / 2 - 0.06 + 0.02, z),
+                        0.008,
+                        "chair",
+                        "frame",
+                        instance,
+                    )
+                )
         # Crest rail: a horizontal bow whose middle sits back_h above the seat, leaning back.
         rr = g["spindle_r"]
         yc, zc = _back_point(d / 2 - 0.05, sh, lean, back_h)
         bow_r = _u(rng, 0.45, 0.7)
         half_ang = math.asin(min(0.95, (w / 2 - 0.02) / bow_r))
         centre = (0.0, yc - bow_r, zc)
-        parts += arc(centre, bow_r, math.pi / 2 - half_ang, math.pi / 2 + half_ang, "xy", 6, 0.014, "chair", "frame", instance)
+        parts += arc(
+            centre,
+            bow_r,
+            math.pi / 2 - half_ang,
+            math.pi / 2 + half_ang,
+            "xy",
+            6,
+            0.014,
+            "chair",
+            "frame",
+            instance,
+        )
         n = g["spindles"]
         for k in range(n):
             ang = math.pi / 2 - half_ang + (k + 0.5) / n * 2 * half_ang
             x_top, y_top = bow_r * math.cos(ang), yc - bow_r + bow_r * math.sin(ang)
             x_bot = x_top * 0.85
-            parts.append(rod((x_bot, d / 2 - 0.05 - (yc - y_top), sh + rr), (x_top, y_top, zc), rr, "chair", "frame", instance))
+            parts.append(
+                rod(
+                    (x_bot, d / 2 - 0.05 - (yc - y_top), sh + rr),
+                    (x_top, y_top, zc),
+                    rr,
+                    "chair",
+                    "frame",
+                    instance,
+                )
+            )
         return parts
     if style == "tube":
         rt = max(0.009, min(0.012, r))
         for sx in (-1, 1):
             x = sx * (w / 2 - 0.02)
-            parts.append(rod((x, -(d / 2 - 0.02), rt), (x, -(d / 2 - 0.02), under - rt), rt, "chair", "frame", instance))
+            parts.append(
+                rod(
+                    (x, -(d / 2 - 0.02), rt),
+                    (x, -(d / 2 - 0.02), under - rt),
+                    rt,
+                    "chair",
+                    "frame",
+                    instance,
+                )
+            )
             # Rear leg and back post: one bent tube, vertical under the seat, leaning above it.
-            parts.append(rod((x, d / 2 - 0.02, rt), (x, d / 2 - 0.02, sh), rt, "chair", "frame", instance))
+            parts.append(
+                rod((x, d / 2 - 0.02, rt), (x, d / 2 - 0.02, sh), rt, "chair", "frame", instance)
+            )
             yt, zt = _back_point(d / 2 - 0.02, sh, lean, back_h)
             parts.append(rod((x, d / 2 - 0.02, sh), (x, yt, zt), rt, "chair", "frame", instance))
         panel_h = _u(rng, 0.14, 0.22)
         s0 = back_h - panel_h
         y_mid, z_mid = _back_point(d / 2 - 0.02 - rt - 0.008, sh, lean, s0 + panel_h / 2)
-        parts.append(Part((0.0, y_mid, z_mid), (w / 2 - 0.02 - rt, 0.007, panel_h / 2), "chair", "body", 0.0, instance, -lean))
+        parts.append(
+            Part(
+                (0.0, y_mid, z_mid),
+                (w / 2 - 0.02 - rt, 0.007, panel_h / 2),
+                "chair",
+                "body",
+                0.0,
+                instance,
+                -lean,
+            )
+        )
         return parts
     # Square legs; the back legs continue as posts leaning back above the seat.
     for sx in (-1, 1):
         x = sx * (w / 2 - 0.015 - r)
-        parts.append(box(x - r, x + r, -d / 2 + 0.015, -d / 2 + 0.015 + leg, 0.0, under, "chair", "frame", instance))
+        parts.append(
+            box(
+                x - r,
+                x + r,
+                -d / 2 + 0.015,
+                -d / 2 + 0.015 + leg,
+                0.0,
+                under,
+                "chair",
+                "frame",
+                instance,
+            )
+        )
         parts.append(box(x - r, x + r, yb - r, yb + r, 0.0, under, "chair", "frame", instance))
         y_mid, z_mid = _back_point(yb, sh, lean, back_h / 2)
-        parts.append(Part((x, y_mid, z_mid), (r, r, back_h / 2), "chair", "frame", 0.0, instance, -lean))
+        parts.append(
+            Part((x, y_mid, z_mid), (r, r, back_h / 2), "chair", "frame", 0.0, instance, -lean)
+        )
         if g["stretchers"]:
-            parts.append(rod((x, -d / 2 + 0.03 + leg, 0.15), (x, yb - r - 0.01, 0.15), 0.008, "chair", "frame", instance))
+            parts.append(
+                rod(
+                    (x, -d / 2 + 0.03 + leg, 0.15),
+                    (x, yb - r - 0.01, 0.15),
+                    0.008,
+                    "chair",
+                    "frame",
+                    instance,
+                )
+            )
     inner = w / 2 - 0.015 - leg  # between the posts
     t = 0.018
     if style == "upholstered":
         y_mid, z_mid = _back_point(yb, sh, lean, 0.08 + (back_h - 0.08) / 2)
-        parts.append(Part((0.0, y_mid, z_mid), (inner, 0.03, (back_h - 0.08) / 2), "chair", soft, 0.0, instance, -lean))
+        parts.append(
+            Part(
+                (0.0, y_mid, z_mid),
+                (inner, 0.03, (back_h - 0.08) / 2),
+                "chair",
+                soft,
+                0.0,
+                instance,
+                -lean,
+            )
+        )
         return parts
     crest = _u(rng, 0.05, 0.09)
     y_mid, z_mid = _back_point(yb, sh, lean, back_h - crest / 2)
-    parts.append(Part((0.0, y_mid, z_mid), (inner, t / 2, crest / 2), "chair", "body", 0.0, instance, -lean))
+    parts.append(
+        Part((0.0, y_mid, z_mid), (inner, t / 2, crest / 2), "chair", "body", 0.0, instance, -lean)
+    )
     if style == "ladder":
         n = g["rails"]
         for k in range(n):
             s = 0.1 + k * (back_h - crest - 0.1) / n
             y_mid, z_mid = _back_point(yb, sh, lean, s + 0.02)
-            parts.append(Part((0.0, y_mid, z_mid), (inner, t / 2, 0.02), "chair", "body", 0.0, instance, -lean))
+            parts.append(
+                Part(
+                    (0.0, y_mid, z_mid), (inner, t / 2, 0.02), "chair", "body", 0.0, instance, -lean
+                )
+            )
         return parts
     rail = 0.04
     y_mid, z_mid = _back_point(yb, sh, lean, 0.08 + rail / 2)
-    parts.append(Part((0.0, y_mid, z_mid), (inner, t / 2, rail / 2), "chair", "body", 0.0, instance, -lean))
+    parts.append(
+        Part((0.0, y_mid, z_mid), (inner, t / 2, rail / 2), "chair", "body", 0.0, instance, -lean)
+    )
     n, sw = g["slats"], g["slat_w"]
     slat_h = back_h - crest - 0.08 - rail
     xs = np.linspace(-inner, inner, n + 2)[1:-1]
     for x in xs:
         y_mid, z_mid = _back_point(yb, sh, lean, 0.08 + rail + slat_h / 2)
-        parts.append(Part((float(x), y_mid, z_mid), (min(sw / 2, inner / (n + 1) / 2 - 0.004), t / 2 - 0.002, slat_h / 2), "chair", "body", 0.0, instance, -lean))
+        parts.append(
+            Part(
+                (float(x), y_mid, z_mid),
+                (min(sw / 2, inner / (n + 1) / 2 - 0.004), t / 2 - 0.002, slat_h / 2),
+                "chair",
+                "body",
+                0.0,
+                instance,
+                -lean,
+            )
+        )
     return parts
 
 
@@ -333,11 +544,38 @@ def office_chair_parts(rng: Rng, instance: int = 0) -> list[Part]:
     for k in range(5):
         a = spin + 2 * math.pi * k / 5
         c, s = math.cos(a), math.sin(a)
-        parts.append(rod((0.02 * c, 0.02 * s, hub_z), (base_r * c, base_r * s, 2 * castor + spoke), spoke, "chair", "frame", instance))
-        parts.append(rod((base_r * c, base_r * s, castor), (base_r * c, base_r * s, castor), castor, "chair", "frame", instance))
+        parts.append(
+            rod(
+                (0.02 * c, 0.02 * s, hub_z),
+                (base_r * c, base_r * s, 2 * castor + spoke),
+                spoke,
+                "chair",
+                "frame",
+                instance,
+            )
+        )
+        parts.append(
+            rod(
+                (base_r * c, base_r * s, castor),
+                (base_r * c, base_r * s, castor),
+                castor,
+                "chair",
+                "frame",
+                instance,
+            )
+        )
     w, d, sh, st = _u(rng, 0.46, 0.52), _u(rng, 0.44, 0.5), _u(rng, 0.44, 0.52), _u(rng, 0.06, 0.09)
     lift = _u(rng, 0.022, 0.028)
-    parts.append(rod((0.0, 0.0, hub_z - 0.02), (0.0, 0.0, sh - st - 0.05 - lift), lift, "chair", "frame", instance))
+    parts.append(
+        rod(
+            (0.0, 0.0, hub_z - 0.02),
+            (0.0, 0.0, sh - st - 0.05 - lift),
+            lift,
+            "chair",
+            "frame",
+            instance,
+        )
+    )
     parts.append(box(-0.1, 0.1, -0.12, 0.12, sh - st - 0.05, sh - st, "chair", "frame", instance))
     parts.append(box(-w / 2, w / 2, -d / 2, d / 2, sh - st, sh, "chair", "soft", instance))
     lean = math.radians(_u(rng, 10.0, 18.0))
@@ -345,18 +583,63 @@ def office_chair_parts(rng: Rng, instance: int = 0) -> list[Part]:
     bw, bt = w * _u(rng, 0.85, 0.98), _u(rng, 0.04, 0.06)
     yb = d / 2 + 0.04
     y_mid, z_mid = _back_point(yb, sh, lean, gap + back_h / 2)
-    parts.append(Part((0.0, y_mid, z_mid), (bw / 2, bt / 2, back_h / 2), "chair", "soft", 0.0, instance, -lean))
+    parts.append(
+        Part(
+            (0.0, y_mid, z_mid), (bw / 2, bt / 2, back_h / 2), "chair", "soft", 0.0, instance, -lean
+        )
+    )
     # The support: a bar bent in a quarter circle from under the seat up behind the back.
     y_low, z_low = _back_point(yb + bt / 2 + 0.012, sh, lean, gap + 0.06)
     bend = z_low - (sh - st - 0.03)
-    parts += arc((0.0, y_low - bend, z_low), bend, 0.0, -math.pi / 2, "yz", 4, 0.012, "chair", "frame", instance)
-    parts.append(rod((0.0, y_low - bend, sh - st - 0.03), (0.0, 0.1, sh - st - 0.03), 0.012, "chair", "frame", instance))
+    parts += arc(
+        (0.0, y_low - bend, z_low),
+        bend,
+        0.0,
+        -math.pi / 2,
+        "yz",
+        4,
+        0.012,
+        "chair",
+        "frame",
+        instance,
+    )
+    parts.append(
+        rod(
+            (0.0, y_low - bend, sh - st - 0.03),
+            (0.0, 0.1, sh - st - 0.03),
+            0.012,
+            "chair",
+            "frame",
+            instance,
+        )
+    )
     if rng.random() < 0.7:
         arm_h = _u(rng, 0.18, 0.25)
         for sx in (-1, 1):
             x = sx * (w / 2 + 0.03)
-            parts.append(rod((x, 0.05, sh - st - 0.01), (x, 0.05, sh + arm_h - 0.012), 0.011, "chair", "frame", instance))
-            parts.append(box(x - 0.035, x + 0.035, -0.1, 0.15, sh + arm_h, sh + arm_h + 0.03, "chair", "soft", instance))
+            parts.append(
+                rod(
+                    (x, 0.05, sh - st - 0.01),
+                    (x, 0.05, sh + arm_h - 0.012),
+                    0.011,
+                    "chair",
+                    "frame",
+                    instance,
+                )
+            )
+            parts.append(
+                box(
+                    x - 0.035,
+                    x + 0.035,
+                    -0.1,
+                    0.15,
+                    sh + arm_h,
+                    sh + arm_h + 0.03,
+                    "chair",
+                    "soft",
+                    instance,
+                )
+            )
     return parts
 
 
@@ -378,7 +661,9 @@ def stool_parts(rng: Rng, instance: int = 0, bar: bool | None = None) -> list[Pa
     z = _u(rng, 0.22, 0.3) if bar else 0.15
     ring = [f + (tp - f) * ((z - f[2]) / (tp[2] - f[2])) for f, tp in feet]
     for k in range(4):
-        parts.append(rod(tuple(ring[k]), tuple(ring[(k + 1) % 4]), 0.008, "chair", "frame", instance))
+        parts.append(
+            rod(tuple(ring[k]), tuple(ring[(k + 1) % 4]), 0.008, "chair", "frame", instance)
+        )
     return parts
 
 
@@ -387,18 +672,35 @@ def lamp_parts(rng: Rng, floor: bool, z0: float = 0.0, instance: int = 0) -> lis
     three splayed legs, under a shade) or a small table lamp on a thin stem."""
     frame = "frame"
     if not floor:
-        base, pole_h, shade_w, shade_h = _u(rng, 0.1, 0.15), _u(rng, 0.2, 0.3), _u(rng, 0.18, 0.25), _u(rng, 0.14, 0.2)
+        base, pole_h, shade_w, shade_h = (
+            _u(rng, 0.1, 0.15),
+            _u(rng, 0.2, 0.3),
+            _u(rng, 0.18, 0.25),
+            _u(rng, 0.14, 0.2),
+        )
         r = _u(rng, 0.006, 0.01)
         return [
             box(-base / 2, base / 2, -base / 2, base / 2, z0, z0 + 0.02, "lamp", frame, instance),
             rod((0.0, 0.0, z0 + 0.02), (0.0, 0.0, z0 + 0.02 + pole_h), r, "lamp", frame, instance),
-            box(-shade_w / 2, shade_w / 2, -shade_w / 2, shade_w / 2, z0 + 0.02 + pole_h, z0 + 0.02 + pole_h + shade_h, "lamp", "shade", instance),
+            box(
+                -shade_w / 2,
+                shade_w / 2,
+                -shade_w / 2,
+                shade_w / 2,
+                z0 + 0.02 + pole_h,
+                z0 + 0.02 + pole_h + shade_h,
+                "lamp",
+                "shade",
+                instance,
+            ),
         ]
     pole_h, shade_w, shade_h = _u(rng, 1.25, 1.5), _u(rng, 0.3, 0.45), _u(rng, 0.25, 0.35)
     r = _u(rng, 0.01, 0.013)
     if rng.random() < 0.5:
         base = _u(rng, 0.25, 0.32)
-        parts = [box(-base / 2, base / 2, -base / 2, base / 2, z0, z0 + 0.015, "lamp", frame, instance)]
+        parts = [
+            box(-base / 2, base / 2, -base / 2, base / 2, z0, z0 + 0.015, "lamp", frame, instance)
+        ]
         z_pole = z0 + 0.015
     else:
         z_pole = z0 + _u(rng, 0.5, 0.7)
@@ -406,9 +708,30 @@ def lamp_parts(rng: Rng, floor: bool, z0: float = 0.0, instance: int = 0) -> lis
         parts = []
         for k in range(3):
             a = 2 * math.pi * k / 3 + 0.3
-            parts.append(rod((spread * math.cos(a), spread * math.sin(a), z0 + 0.01), (0.0, 0.0, z_pole), 0.01, "lamp", frame, instance))
+            parts.append(
+                rod(
+                    (spread * math.cos(a), spread * math.sin(a), z0 + 0.01),
+                    (0.0, 0.0, z_pole),
+                    0.01,
+                    "lamp",
+                    frame,
+                    instance,
+                )
+            )
     parts.append(rod((0.0, 0.0, z_pole), (0.0, 0.0, z0 + pole_h), r, "lamp", frame, instance))
-    parts.append(box(-shade_w / 2, shade_w / 2, -shade_w / 2, shade_w / 2, z0 + pole_h + r, z0 + pole_h + r + shade_h, "lamp", "shade", instance))
+    parts.append(
+        box(
+            -shade_w / 2,
+            shade_w / 2,
+            -shade_w / 2,
+            shade_w / 2,
+            z0 + pole_h + r,
+            z0 + pole_h + r + shade_h,
+            "lamp",
+            "shade",
+            instance,
+        )
+    )
     return parts
 
 
@@ -423,7 +746,15 @@ def arc_lamp(rng: Rng) -> Group:
     parts += arc((0.0, -bend, rise), bend, 0.0, math.pi * 0.85, "yz", 8, r, "lamp", "frame")
     tip_y, tip_z = -bend + bend * math.cos(math.pi * 0.85), rise + bend * math.sin(math.pi * 0.85)
     shade_r = _u(rng, 0.14, 0.2)
-    parts.append(rod((0.0, tip_y, tip_z - r - shade_r), (0.0, tip_y, tip_z - r - shade_r), shade_r, "lamp", "shade"))
+    parts.append(
+        rod(
+            (0.0, tip_y, tip_z - r - shade_r),
+            (0.0, tip_y, tip_z - r - shade_r),
+            shade_r,
+            "lamp",
+            "shade",
+        )
+    )
     return make_group("arc_lamp", parts, "wall")
 
 
@@ -435,7 +766,9 @@ def plant(rng: Rng) -> Group:
     tree = rng.random() < 0.4
     if tree:
         height = _u(rng, 1.3, 1.8)
-        parts.append(rod((0.0, 0.0, pot_h + 0.01), (0.0, 0.0, height * 0.6), 0.012, "otherprop", "stem"))
+        parts.append(
+            rod((0.0, 0.0, pot_h + 0.01), (0.0, 0.0, height * 0.6), 0.012, "otherprop", "stem")
+        )
         starts = [(0.0, 0.0, height * _u(rng, 0.4, 0.6)) for _ in range(int(rng.integers(4, 7)))]
         length = (0.35, 0.6)
     else:
@@ -444,14 +777,30 @@ def plant(rng: Rng) -> Group:
     for p0 in starts:
         a, up = _u(rng, 0, 2 * math.pi), _u(rng, 0.3, 1.2)
         ln = _u(rng, *length)
-        tip = (p0[0] + ln * math.cos(up) * math.cos(a), p0[1] + ln * math.cos(up) * math.sin(a), p0[2] + ln * math.sin(up))
+        tip = (
+            p0[0] + ln * math.cos(up) * math.cos(a),
+            p0[1] + ln * math.cos(up) * math.sin(a),
+            p0[2] + ln * math.sin(up),
+        )
         parts.append(rod(p0, tip, _u(rng, 0.004, 0.008), "otherprop", "stem"))
         lw, ll = _u(rng, 0.04, 0.09), _u(rng, 0.12, 0.22)
-        parts.append(Part(tip, (lw / 2, 0.003, ll / 2), "otherprop", "leaf", a + math.pi / 2, 0, _u(rng, 0.3, 1.2)))
+        parts.append(
+            Part(
+                tip,
+                (lw / 2, 0.003, ll / 2),
+                "otherprop",
+                "leaf",
+                a + math.pi / 2,
+                0,
+                _u(rng, 0.3, 1.2),
+            )
+        )
     return make_group("plant", parts, "wall")
 
 
-def book_rows(rng: Rng, x0: float, x1: float, y0: float, y1: float, z0: float, max_h: float, instance: int = 0) -> list[Part]:
+def book_rows(
+    rng: Rng, x0: float, x1: float, y0: float, y1: float, z0: float, max_h: float, instance: int = 0
+) -> list[Part]:
     """One or two runs of books standing on a board between x0 and x1."""
     parts = []
     width = x1 - x0
@@ -462,11 +811,25 @@ def book_rows(rng: Rng, x0: float, x1: float, y0: float, y1: float, z0: float, m
     for k in range(runs):
         a, b = edges[k] + (0.01 if k else 0.0), edges[k + 1]
         h = min(max_h, _u(rng, 0.17, 0.3))
-        parts.append(box(a, b, y0, y0 + min(y1 - y0, _u(rng, 0.15, 0.24)), z0, z0 + h, "books", "body", instance))
+        parts.append(
+            box(
+                a,
+                b,
+                y0,
+                y0 + min(y1 - y0, _u(rng, 0.15, 0.24)),
+                z0,
+                z0 + h,
+                "books",
+                "body",
+                instance,
+            )
+        )
     return parts
 
 
-def cardboard_boxes(rng: Rng, x0: float, x1: float, y0: float, y1: float, z0: float, max_h: float, instance: int = 0) -> list[Part]:
+def cardboard_boxes(
+    rng: Rng, x0: float, x1: float, y0: float, y1: float, z0: float, max_h: float, instance: int = 0
+) -> list[Part]:
     """A row of boxes on a board or the floor, side by side without touching."""
     parts = []
     x = x0 + _u(rng, 0.0, 0.1)
@@ -502,7 +865,9 @@ def dining_set(rng: Rng) -> Group:
                 parts += moved(chair_parts(rng, inst, design), float(x), side * (d / 2 + 0.38), yaw)
                 inst += 1
     if rng.random() < 0.5:
-        parts += moved(chair_parts(rng, inst, design), -(w / 2 + 0.38), 0.0, math.pi / 2 + _u(rng, -0.2, 0.2))
+        parts += moved(
+            chair_parts(rng, inst, design), -(w / 2 + 0.38), 0.0, math.pi / 2 + _u(rng, -0.2, 0.2)
+        )
     return make_group("dining", parts, "free")
 
 
@@ -558,7 +923,9 @@ def stool_row(rng: Rng) -> Group:
     parts: list[Part] = []
     model = int(rng.integers(2**31))  # one model: every stool is built from the same draws
     for k in range(int(rng.integers(2, 5))):
-        parts += moved(stool_parts(np.random.default_rng(model), k, bar), 0.55 * k, 0.0, _u(rng, -0.4, 0.4))
+        parts += moved(
+            stool_parts(np.random.default_rng(model), k, bar), 0.55 * k, 0.0, _u(rng, -0.4, 0.4)
+        )
     return make_group("stools", parts, "wall")
 
 
@@ -573,11 +940,41 @@ def _desk_top(rng: Rng, w: float, d: float, h: float, frame: bool) -> list[Part]
             x = sx * (w / 2 - 0.04 - leg / 2)
             for sy in (-1, 1):
                 y = sy * (d / 2 - 0.04 - leg / 2)
-                parts.append(box(x - leg / 2, x + leg / 2, y - leg / 2, y + leg / 2, 0.0, h - t, "desk", "body"))
-            parts.append(box(x - leg / 2, x + leg / 2, -d / 2 + 0.04 + leg, d / 2 - 0.04 - leg, 0.05, 0.05 + leg, "desk", "body"))
+                parts.append(
+                    box(
+                        x - leg / 2,
+                        x + leg / 2,
+                        y - leg / 2,
+                        y + leg / 2,
+                        0.0,
+                        h - t,
+                        "desk",
+                        "body",
+                    )
+                )
+            parts.append(
+                box(
+                    x - leg / 2,
+                    x + leg / 2,
+                    -d / 2 + 0.04 + leg,
+                    d / 2 - 0.04 - leg,
+                    0.05,
+                    0.05 + leg,
+                    "desk",
+                    "body",
+                )
+            )
         x_in = w / 2 - 0.04 - leg
         y = d / 2 - 0.04 - leg / 2
-        parts.append(rod((-x_in + 0.011, y, h - t - 0.1), (x_in - 0.011, y, h - t - 0.1), 0.011, "desk", "body"))
+        parts.append(
+            rod(
+                (-x_in + 0.011, y, h - t - 0.1),
+                (x_in - 0.011, y, h - t - 0.1),
+                0.011,
+                "desk",
+                "body",
+            )
+        )
         return parts
     side = _u(rng, 0.018, 0.03)
     parts += [
@@ -586,7 +983,18 @@ def _desk_top(rng: Rng, w: float, d: float, h: float, frame: bool) -> list[Part]
     ]
     if rng.random() < 0.6:
         dw = _u(rng, 0.35, 0.45)
-        parts.append(box(w / 2 - side - dw, w / 2 - side - 0.005, -d / 2 + 0.03, d / 2, h - t - 0.45, h - t, "desk", "body"))
+        parts.append(
+            box(
+                w / 2 - side - dw,
+                w / 2 - side - 0.005,
+                -d / 2 + 0.03,
+                d / 2,
+                h - t - 0.45,
+                h - t,
+                "desk",
+                "body",
+            )
+        )
     return parts
 
 
@@ -600,9 +1008,19 @@ def desk_set(rng: Rng, office: bool = False) -> Group:
         parts += moved(lamp_parts(rng, floor=False, z0=h), side_sign * (w / 2 - 0.15), d / 2 - 0.15)
     if rng.random() < 0.7:
         edge = -side_sign * (w / 2 - 0.03)
-        parts += book_rows(rng, min(edge, edge + 0.3 * side_sign), max(edge, edge + 0.3 * side_sign), d / 2 - 0.28, d / 2 - 0.02, h, 0.3)
+        parts += book_rows(
+            rng,
+            min(edge, edge + 0.3 * side_sign),
+            max(edge, edge + 0.3 * side_sign),
+            d / 2 - 0.28,
+            d / 2 - 0.02,
+            h,
+            0.3,
+        )
     if (w >= 1.3 or office) and rng.random() < (0.85 if office else 0.6):
-        parts.append(box(-0.25, 0.25, d / 2 - 0.12, d / 2 - 0.04, h + 0.1, h + 0.42, "television", "screen"))
+        parts.append(
+            box(-0.25, 0.25, d / 2 - 0.12, d / 2 - 0.04, h + 0.1, h + 0.42, "television", "screen")
+        )
         parts.append(box(-0.04, 0.04, d / 2 - 0.1, d / 2 - 0.06, h, h + 0.1, "television", "frame"))
     if office or rng.random() < 0.3:
         chair, gap = office_chair_parts(rng, 1), 0.42
@@ -621,7 +1039,16 @@ def bed_set(rng: Rng) -> Group:
     y0, y1 = -length / 2, length / 2
     parts = [
         box(-w / 2, w / 2, y0, y1 - head_t, 0.0, base_h, "bed", "frame"),
-        box(-w / 2 + 0.02, w / 2 - 0.02, y0 + 0.02, y1 - head_t, base_h, base_h + mat_h, "bed", "soft"),
+        box(
+            -w / 2 + 0.02,
+            w / 2 - 0.02,
+            y0 + 0.02,
+            y1 - head_t,
+            base_h,
+            base_h + mat_h,
+            "bed",
+            "soft",
+        ),
         box(-w / 2, w / 2, y1 - head_t, y1, 0.0, head_h, "bed", "frame"),
     ]
     top = base_h + mat_h
@@ -629,7 +1056,19 @@ def bed_set(rng: Rng) -> Group:
     pw = (w - 0.15) / n_pillows - 0.06
     for k in range(n_pillows):
         x = -w / 2 + 0.08 + k * (pw + 0.06)
-        parts.append(box(x, x + pw, y1 - head_t - 0.42, y1 - head_t - 0.04, top, top + _u(rng, 0.1, 0.15), "pillow", "body", k))
+        parts.append(
+            box(
+                x,
+                x + pw,
+                y1 - head_t - 0.42,
+                y1 - head_t - 0.04,
+                top,
+                top + _u(rng, 0.1, 0.15),
+                "pillow",
+                "body",
+                k,
+            )
+        )
     for k, sx in enumerate((-1, 1)):
         if rng.random() < 0.8:
             nw, nd, nh = _u(rng, 0.4, 0.5), _u(rng, 0.35, 0.42), _u(rng, 0.45, 0.6)
@@ -643,7 +1082,13 @@ def bed_set(rng: Rng) -> Group:
 def sofa_set(rng: Rng) -> Group:
     """A sofa with pillows, and often a coffee table on a rug in front of it."""
     w, d = _u(rng, 1.7, 2.4), _u(rng, 0.85, 0.95)
-    seat_h, back_t, back_h, arm_w, arm_h = _u(rng, 0.4, 0.45), 0.2, _u(rng, 0.8, 0.9), 0.15, _u(rng, 0.55, 0.65)
+    seat_h, back_t, back_h, arm_w, arm_h = (
+        _u(rng, 0.4, 0.45),
+        0.2,
+        _u(rng, 0.8, 0.9),
+        0.15,
+        _u(rng, 0.55, 0.65),
+    )
     y0, y1 = -d / 2, d / 2
     parts = [
         box(-w / 2 + arm_w, w / 2 - arm_w, y0, y1 - back_t, 0.0, seat_h, "sofa", "body"),
@@ -656,7 +1101,19 @@ def sofa_set(rng: Rng) -> Group:
     slots = np.linspace(-inner / 2, inner / 2, n + 2)[1:-1]
     for k, x in enumerate(slots):
         pw = min(_u(rng, 0.35, 0.45), inner / (n + 1) - 0.04)
-        parts.append(box(x - pw / 2, x + pw / 2, y1 - back_t - 0.14, y1 - back_t, seat_h, seat_h + pw * 0.9, "pillow", "body", k))
+        parts.append(
+            box(
+                x - pw / 2,
+                x + pw / 2,
+                y1 - back_t - 0.14,
+                y1 - back_t,
+                seat_h,
+                seat_h + pw * 0.9,
+                "pillow",
+                "body",
+                k,
+            )
+        )
     if rng.random() < 0.75:
         tw, td = _u(rng, 0.8, 1.2), _u(rng, 0.45, 0.6)
         ty = y0 - 0.4 - td / 2
@@ -664,7 +1121,18 @@ def sofa_set(rng: Rng) -> Group:
         if rng.random() < 0.7:
             mat = 0.008
             mw, md = tw + _u(rng, 0.6, 1.0), td + _u(rng, 0.5, 0.8)
-            parts.append(box(-mw / 2, mw / 2, ty - md / 2, min(ty + md / 2, y0 - 0.02), 0.0, mat, "floor mat", "body"))
+            parts.append(
+                box(
+                    -mw / 2,
+                    mw / 2,
+                    ty - md / 2,
+                    min(ty + md / 2, y0 - 0.02),
+                    0.0,
+                    mat,
+                    "floor mat",
+                    "body",
+                )
+            )
         parts += moved(table_parts(rng, tw, td, _u(rng, 0.38, 0.45)), 0.0, ty, dz=mat)
     return make_group("sofa", parts, "wall")
 
@@ -685,7 +1153,16 @@ def bookshelf(rng: Rng) -> Group:
     for k, z in enumerate(levels):
         parts.append(box(-w / 2 + t, w / 2 - t, y0, y1 - 0.008, z, z + t, "bookshelf"))
         if k < n_boards and rng.random() < 0.9:
-            parts += book_rows(rng, -w / 2 + t + 0.01, w / 2 - t - 0.01, y1 - 0.008 - 0.25, y1 - 0.009, z + t, gap - t - 0.03, k)
+            parts += book_rows(
+                rng,
+                -w / 2 + t + 0.01,
+                w / 2 - t - 0.01,
+                y1 - 0.008 - 0.25,
+                y1 - 0.009,
+                z + t,
+                gap - t - 0.03,
+                k,
+            )
     parts.append(box(-w / 2 + t, w / 2 - t, y0, y1 - 0.008, 0.0, 0.06, "bookshelf"))
     return make_group("bookshelf", parts, "wall")
 
@@ -702,15 +1179,34 @@ def ladder_shelf(rng: Rng) -> Group:
     parts = []
     for sx in (-1, 1):
         x = sx * (w / 2 - rail / 2)
-        parts.append(slab((x, y_foot / 2 - rail / 2, h / 2), (rail / 2, rail / 2, half_len), lean, "shelves", "frame"))
+        parts.append(
+            slab(
+                (x, y_foot / 2 - rail / 2, h / 2),
+                (rail / 2, rail / 2, half_len),
+                lean,
+                "shelves",
+                "frame",
+            )
+        )
     n = int(rng.integers(4, 6))
     for k in range(n):
         z = 0.15 + k * (h - 0.35) / (n - 1)
         y_rail = y_foot * (1 - z / h) - rail / 2
         dep = depth0 * (1 - 0.6 * k / max(1, n - 1))
-        parts.append(box(-w / 2 + rail, w / 2 - rail, y_rail - dep, y_rail + rail / 2, z, z + t, "shelves"))
+        parts.append(
+            box(-w / 2 + rail, w / 2 - rail, y_rail - dep, y_rail + rail / 2, z, z + t, "shelves")
+        )
         if rng.random() < 0.5:
-            parts += book_rows(rng, -w / 2 + rail + 0.01, w / 2 - rail - 0.01, y_rail - dep + 0.01, y_rail, z + t, 0.25, k)
+            parts += book_rows(
+                rng,
+                -w / 2 + rail + 0.01,
+                w / 2 - rail - 0.01,
+                y_rail - dep + 0.01,
+                y_rail,
+                z + t,
+                0.25,
+                k,
+            )
     return make_group("ladder_shelf", parts, "wall")
 
 
@@ -723,16 +1219,22 @@ def cabinet_tv(rng: Rng) -> Group:
         th = tw * 0.58
         parts.append(box(-0.12, 0.12, -0.1, 0.1, h, h + 0.04, "television", "frame"))
         parts.append(box(-0.03, 0.03, -0.03, 0.03, h + 0.04, h + 0.1, "television", "frame"))
-        parts.append(box(-tw / 2, tw / 2, -0.03, 0.03, h + 0.1, h + 0.1 + th, "television", "screen"))
+        parts.append(
+            box(-tw / 2, tw / 2, -0.03, 0.03, h + 0.1, h + 0.1 + th, "television", "screen")
+        )
     elif rng.random() < 0.7:
-        parts += cardboard_boxes(rng, -w / 2 + 0.05, w / 2 - 0.05, -d / 2 + 0.05, d / 2 - 0.05, h, 0.35)
+        parts += cardboard_boxes(
+            rng, -w / 2 + 0.05, w / 2 - 0.05, -d / 2 + 0.05, d / 2 - 0.05, h, 0.35
+        )
     return make_group("cabinet", parts, "wall")
 
 
 def tall_cabinet(rng: Rng) -> Group:
     """A tall storage cabinet (wardrobe, office cupboard)."""
     w, d, h = _u(rng, 0.8, 1.2), _u(rng, 0.45, 0.6), _u(rng, 1.4, 2.0)
-    return make_group("tall_cabinet", [box(-w / 2, w / 2, -d / 2, d / 2, 0.0, h, "cabinet")], "wall")
+    return make_group(
+        "tall_cabinet", [box(-w / 2, w / 2, -d / 2, d / 2, 0.0, h, "cabinet")], "wall"
+    )
 
 
 def dresser(rng: Rng) -> Group:
@@ -753,7 +1255,19 @@ def kitchen(rng: Rng) -> Group:
         box(-w / 2, w / 2, -d / 2, d / 2, h, h + t, "counter", "top"),
     ]
     if rng.random() < 0.8:
-        parts.append(box(-w / 2, w / 2, d / 2 - 0.35, d / 2, _u(rng, 1.45, 1.55), _u(rng, 2.0, 2.1), "cabinet", "body", 1))
+        parts.append(
+            box(
+                -w / 2,
+                w / 2,
+                d / 2 - 0.35,
+                d / 2,
+                _u(rng, 1.45, 1.55),
+                _u(rng, 2.0, 2.1),
+                "cabinet",
+                "body",
+                1,
+            )
+        )
     if rng.random() < 0.85:
         fw, fh = _u(rng, 0.6, 0.75), _u(rng, 1.7, 1.9)
         side = rng.choice([-1, 1])
@@ -777,7 +1291,16 @@ def shelving(rng: Rng) -> Group:
     for k, z in enumerate(levels):
         parts.append(box(-w / 2 + 2 * r, w / 2 - 2 * r, -d / 2, d / 2, z, z + t, "shelves"))
         if k < n:
-            parts += cardboard_boxes(rng, -w / 2 + 2 * r + 0.02, w / 2 - 2 * r - 0.02, -d / 2 + 0.03, d / 2 - 0.03, z + t, levels[1] - levels[0] - t - 0.04, 10 * k)
+            parts += cardboard_boxes(
+                rng,
+                -w / 2 + 2 * r + 0.02,
+                w / 2 - 2 * r - 0.02,
+                -d / 2 + 0.03,
+                d / 2 - 0.03,
+                z + t,
+                levels[1] - levels[0] - t - 0.04,
+                10 * k,
+            )
     return make_group("shelving", parts, "wall")
 
 
@@ -791,7 +1314,19 @@ def box_pile(rng: Rng) -> Group:
         parts.append(box(x, x + w, -d / 2, d / 2, 0.0, h, "box", "body", 2 * k))
         if rng.random() < 0.4:
             w2, d2 = w * _u(rng, 0.6, 0.95), d * _u(rng, 0.6, 0.95)
-            parts.append(box(x + 0.01, x + 0.01 + w2, -d2 / 2, d2 / 2, h, h + _u(rng, 0.2, 0.35), "box", "body", 2 * k + 1))
+            parts.append(
+                box(
+                    x + 0.01,
+                    x + 0.01 + w2,
+                    -d2 / 2,
+                    d2 / 2,
+                    h,
+                    h + _u(rng, 0.2, 0.35),
+                    "box",
+                    "body",
+                    2 * k + 1,
+                )
+            )
         x += w + _u(rng, 0.02, 0.08)
     return make_group("boxes", parts, "free")
 
@@ -836,10 +1371,14 @@ def window(rng: Rng, dressing: str) -> Group:
         cw = _u(rng, 0.3, 0.5)
         for k, sx in enumerate((-1, 1)):
             x0 = w / 2 - cw * 0.3 if sx > 0 else -w / 2 - cw * 0.7
-            parts.append(box(x0, x0 + cw, -t - 0.2, -t - 0.08, 0.02, top + 0.15, "curtain", "body", k))
+            parts.append(
+                box(x0, x0 + cw, -t - 0.2, -t - 0.08, 0.02, top + 0.15, "curtain", "body", k)
+            )
     elif dressing == "blinds":
         bh = h * _u(rng, 0.25, 0.7)
-        parts.append(box(-w / 2 + f, w / 2 - f, -t - 0.04, -t - 0.01, top - f - bh, top - f, "blinds"))
+        parts.append(
+            box(-w / 2 + f, w / 2 - f, -t - 0.04, -t - 0.01, top - f - bh, top - f, "blinds")
+        )
     return make_group("window", parts, "onwall")
 
 
@@ -850,7 +1389,16 @@ def picture(rng: Rng) -> Group:
     f = 0.03
     parts = [
         box(-w / 2, w / 2, -0.03, 0.0, zc - h / 2, zc + h / 2, "picture", "frame"),
-        box(-w / 2 + f, w / 2 - f, -0.035, -0.03, zc - h / 2 + f, zc + h / 2 - f, "picture", "canvas"),
+        box(
+            -w / 2 + f,
+            w / 2 - f,
+            -0.035,
+            -0.03,
+            zc - h / 2 + f,
+            zc + h / 2 - f,
+            "picture",
+            "canvas",
+        ),
     ]
     return make_group("picture", parts, "onwall")
 
@@ -881,7 +1429,9 @@ def mirror(rng: Rng) -> Group:
     z0 = _u(rng, 0.9, 1.1)
     parts = [
         box(-w / 2, w / 2, -0.025, 0.0, z0, z0 + h, "mirror", "frame"),
-        box(-w / 2 + 0.03, w / 2 - 0.03, -0.03, -0.025, z0 + 0.03, z0 + h - 0.03, "mirror", "glass"),
+        box(
+            -w / 2 + 0.03, w / 2 - 0.03, -0.03, -0.025, z0 + 0.03, z0 + h - 0.03, "mirror", "glass"
+        ),
     ]
     return make_group("mirror", parts, "onwall")
 

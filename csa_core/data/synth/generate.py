@@ -25,15 +25,25 @@ LAYOUT_TRIES = 8
 
 
 def _check(frames: int, size: tuple[int, int], seed: int) -> tuple[int, int]:
-    if isinstance(frames, bool) or not isinstance(frames, int | np.integer) or frames < 1 or frames > MAX_FRAMES:
-        raise CSAInputError("--frames", f"must be an integer between 1 and {MAX_FRAMES}, got {frames!r}")
+    if (
+        isinstance(frames, bool)
+        or not isinstance(frames, int | np.integer)
+        or frames < 1
+        or frames > MAX_FRAMES
+    ):
+        raise CSAInputError(
+            "--frames", f"must be an integer between 1 and {MAX_FRAMES}, got {frames!r}"
+        )
     check_seed(seed)
     try:
         w, h = (int(v) for v in size)
     except (TypeError, ValueError):
         raise CSAInputError("--size", f"expected (width, height), got {size!r}") from None
     if not (MIN_SIDE_PX <= w <= MAX_SIDE_PX and MIN_SIDE_PX <= h <= MAX_SIDE_PX):
-        raise CSAInputError("--size", f"width and height must be between {MIN_SIDE_PX} and {MAX_SIDE_PX} pixels, got {w}x{h}")
+        raise CSAInputError(
+            "--size",
+            f"width and height must be between {MIN_SIDE_PX} and {MAX_SIDE_PX} pixels, got {w}x{h}",
+        )
     return w, h
 
 
@@ -46,7 +56,9 @@ def parse_size(text: str) -> tuple[int, int]:
 def intrinsics_for(width: int, height: int, hfov_deg: float) -> Intrinsics:
     """A centred pinhole camera with square pixels and the given horizontal field of view."""
     f = (width / 2) / math.tan(math.radians(hfov_deg) / 2)
-    return Intrinsics(fx=f, fy=f, cx=(width - 1) / 2, cy=(height - 1) / 2, width=width, height=height)
+    return Intrinsics(
+        fx=f, fy=f, cx=(width - 1) / 2, cy=(height - 1) / 2, width=width, height=height
+    )
 
 
 def _rng(family: RoomFamily, seed: int, stream: int) -> np.random.Generator:
@@ -66,11 +78,15 @@ def _exposures(family: RoomFamily, frames: int, rng: np.random.Generator) -> np.
 def check_capture(capture: str) -> str:
     """A capture mode name, or a user error naming ``--capture``."""
     if capture not in CAPTURES:
-        raise CSAInputError("--capture", f"unknown capture mode {capture!r} (known: {', '.join(CAPTURES)})")
+        raise CSAInputError(
+            "--capture", f"unknown capture mode {capture!r} (known: {', '.join(CAPTURES)})"
+        )
     return capture
 
 
-def room_and_path(family: RoomFamily, seed: int, frames: int, capture: str = "walk") -> tuple[Room, np.ndarray]:
+def room_and_path(
+    family: RoomFamily, seed: int, frames: int, capture: str = "walk"
+) -> tuple[Room, np.ndarray]:
     """The room of (family, seed) and the camera poses of the capture mode in it: "walk" (a
     smooth walk through the room) or "random" (viewpoints spread at random through its free
     space, ``camera_path.random_views``). Both modes get the same room of (family, seed) unless
@@ -85,7 +101,14 @@ def room_and_path(family: RoomFamily, seed: int, frames: int, capture: str = "wa
     raise RuntimeError(f"synth: no walkable layout for family {family.name!r}, seed {seed}")
 
 
-def generate_scene(family: str | RoomFamily, seed: int, frames: int, size: tuple[int, int], name: str | None = None, capture: str = "walk") -> Scene:
+def generate_scene(
+    family: str | RoomFamily,
+    seed: int,
+    frames: int,
+    size: tuple[int, int],
+    name: str | None = None,
+    capture: str = "walk",
+) -> Scene:
     """A synthetic scene in memory: ``frames`` posed RGB-D frames of one procedural room.
 
     ``family`` is a name from ``FAMILIES`` (or a :class:`RoomFamily`, e.g. a modified copy);
@@ -105,14 +128,20 @@ def generate_scene(family: str | RoomFamily, seed: int, frames: int, size: tuple
     exposures = _exposures(fam, frames, _rng(fam, seed, 2))
     out = []
     for i, pose in enumerate(poses):
-        color, depth, labels = renderer.render(pose, float(exposures[i]), fam.sensor_noise, _rng(fam, seed, 1000 + i))
-        out.append(Frame(name=str(i), color=color, pose=pose, depth=depth, labels={NYU40_FOLDER: labels}))
+        color, depth, labels = renderer.render(
+            pose, float(exposures[i]), fam.sensor_noise, _rng(fam, seed, 1000 + i)
+        )
+        out.append(
+            Frame(name=str(i), color=color, pose=pose, depth=depth, labels={NYU40_FOLDER: labels})
+        )
     return Scene(name=name or f"{fam.name}_{seed}", intrinsics=intr, frames=out)
 
 
 def scene_seed(seed: int, index: int) -> int:
     """Seed of the ``index``-th scene of a batch started with ``seed`` (stable, well mixed)."""
-    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1, dtype=np.uint32)[0])
+    return int(
+        np.random.SeedSequence([int(seed), int(index)]).generate_state(1, dtype=np.uint32)[0]
+    )
 
 
 def synthesize(
@@ -140,7 +169,9 @@ def synthesize(
     if not overwrite:
         for n in names:
             if (out / n).exists():
-                raise CSAInputError(out / n, "output already exists (pass --overwrite to replace it)")
+                raise CSAInputError(
+                    out / n, "output already exists (pass --overwrite to replace it)"
+                )
     written = []
     for k, n in enumerate(names):
         scene = generate_scene(fam, scene_seed(seed, k), frames, size, name=n, capture=capture)

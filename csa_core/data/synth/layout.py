@@ -87,7 +87,9 @@ class Room:
         return self.width if wall in (0, 2) else self.depth
 
 
-def _rotated_aabb(lo: np.ndarray, hi: np.ndarray, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+def _rotated_aabb(
+    lo: np.ndarray, hi: np.ndarray, x: float, y: float, yaw: float
+) -> tuple[np.ndarray, np.ndarray]:
     c, s = math.cos(yaw), math.sin(yaw)
     xs = np.array([lo[0], hi[0], lo[0], hi[0]])
     ys = np.array([lo[1], lo[1], hi[1], hi[1]])
@@ -95,14 +97,18 @@ def _rotated_aabb(lo: np.ndarray, hi: np.ndarray, x: float, y: float, yaw: float
     return np.array([wx.min(), wy.min(), lo[2]]), np.array([wx.max(), wy.max(), hi[2]])
 
 
-def _overlaps(lo: np.ndarray, hi: np.ndarray, others: list[tuple[np.ndarray, np.ndarray]], gap: float) -> bool:
+def _overlaps(
+    lo: np.ndarray, hi: np.ndarray, others: list[tuple[np.ndarray, np.ndarray]], gap: float
+) -> bool:
     for olo, ohi in others:
         if np.all(lo < ohi + gap) and np.all(olo < hi + gap):
             return True
     return False
 
 
-def _wall_pose(room: Room, group: Group, wall: int, along: float, gap: float) -> tuple[float, float]:
+def _wall_pose(
+    room: Room, group: Group, wall: int, along: float, gap: float
+) -> tuple[float, float]:
     lo, hi = group.bounds()
     half_d = (hi[1] - lo[1]) / 2 + gap
     if wall == 0:
@@ -138,7 +144,9 @@ def _try_place(room: Room, group: Group, rng: np.random.Generator) -> PlacedGrou
             x = float(rng.uniform(margin[0], room.width - margin[0]))
             y = float(rng.uniform(margin[1], room.depth - margin[1]))
             cand = PlacedGroup(group, x, y, yaw, None)
-            if _overlaps(*cand.aabb(), floor_boxes, FREE_GAP_M) or _overlaps(*cand.aabb(), placed_boxes, FLOOR_GAP_M):
+            if _overlaps(*cand.aabb(), floor_boxes, FREE_GAP_M) or _overlaps(
+                *cand.aabb(), placed_boxes, FLOOR_GAP_M
+            ):
                 continue
             if _leaves_room_to_walk(room, cand):
                 return cand
@@ -153,7 +161,9 @@ def _try_place(room: Room, group: Group, rng: np.random.Generator) -> PlacedGrou
         x, y = _wall_pose(room, group, wall, along, gap)
         cand = PlacedGroup(group, x, y, WALL_YAW[wall], wall)
         clearance = FLOOR_GAP_M if group.mount == "wall" else 0.02
-        if not _overlaps(*cand.aabb(), placed_boxes, clearance) and _leaves_room_to_walk(room, cand):
+        if not _overlaps(*cand.aabb(), placed_boxes, clearance) and _leaves_room_to_walk(
+            room, cand
+        ):
             return cand
     return None
 

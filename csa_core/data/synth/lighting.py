@@ -24,7 +24,9 @@ class Light:
     shadows: bool
 
 
-def _push_out(pos: np.ndarray, room: Room, blockers: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+def _push_out(
+    pos: np.ndarray, room: Room, blockers: list[tuple[np.ndarray, np.ndarray]]
+) -> np.ndarray:
     """Move a light towards the room centre until it is outside every blocker's bounds."""
     centre = np.array([room.width / 2, room.depth / 2, pos[2]])
     for k in range(21):
@@ -47,10 +49,28 @@ def place_lights(family: RoomFamily, room: Room, rng: np.random.Generator) -> li
         lo, hi = win.aabb()
         inward = np.array([[0, 1], [-1, 0], [0, -1], [1, 0]][win.wall], dtype=np.float64)
         top = max(p.center[2] + p.half[2] for p in win.group.parts if p.label == "window")
-        pos = np.array([(lo[0] + hi[0]) / 2 + 0.6 * inward[0], (lo[1] + hi[1]) / 2 + 0.6 * inward[1], min(top + 0.2, z)])
-        lights.append(Light(_push_out(pos, room, blockers), color * rng.uniform(*style.intensity), style.shadow_lights > 0))
+        pos = np.array(
+            [
+                (lo[0] + hi[0]) / 2 + 0.6 * inward[0],
+                (lo[1] + hi[1]) / 2 + 0.6 * inward[1],
+                min(top + 0.2, z),
+            ]
+        )
+        lights.append(
+            Light(
+                _push_out(pos, room, blockers),
+                color * rng.uniform(*style.intensity),
+                style.shadow_lights > 0,
+            )
+        )
         fill = np.array([room.width / 2, room.depth / 2, z])
-        lights.append(Light(_push_out(fill, room, blockers), np.asarray(style.fill_color) * style.fill_intensity, False))
+        lights.append(
+            Light(
+                _push_out(fill, room, blockers),
+                np.asarray(style.fill_color) * style.fill_intensity,
+                False,
+            )
+        )
         return lights
     n = int(rng.integers(style.count[0], style.count[1] + 1))
     long_x = room.width >= room.depth
@@ -100,7 +120,9 @@ def irradiance(
                     continue
                 # Stop 5 mm short of the point so its own surface does not shadow it.
                 t_end = 1.0 - 0.005 / np.maximum(dist[sel], 1e-6)
-                blocked = casters.subset(cand).any_hit(light.position, pts - light.position, t_end, eps=1e-3)
+                blocked = casters.subset(cand).any_hit(
+                    light.position, pts - light.position, t_end, eps=1e-3
+                )
                 lit[sel[blocked]] = False
         gain = np.where(lit, cos, 0.0) / (1.0 + (dist / falloff_m) ** 2)
         e += gain[:, None] * light.power[None, :]

@@ -18,7 +18,9 @@ def hash01(*coords: np.ndarray, seed: int = 0) -> np.ndarray:
     ``coords`` are integer-valued arrays (any sign) broadcastable together; the result is
     float64 and depends only on the coordinates and ``seed``.
     """
-    h = np.full(np.broadcast(*coords).shape, np.uint32((seed * 0x165667B1 + 0x27D4EB2F) & 0xFFFFFFFF))
+    h = np.full(
+        np.broadcast(*coords).shape, np.uint32((seed * 0x165667B1 + 0x27D4EB2F) & 0xFFFFFFFF)
+    )
     for i, c in enumerate(coords):
         ci = np.asarray(c).astype(np.int64).astype(np.uint32)
         h = h ^ (ci * _PRIMES[i % 3])

@@ -75,10 +75,14 @@ def room_solids(room: Room) -> tuple[Solids, list[tuple[int, Part]]]:
     return Solids(box_set, cap_set), box_src + cap_src
 
 
-def build_model(room: Room, family: RoomFamily, lights: list[Light], rng: np.random.Generator) -> RoomModel:
+def build_model(
+    room: Room, family: RoomFamily, lights: list[Light], rng: np.random.Generator
+) -> RoomModel:
     """The room's solids, and a material drawn for every (group, class, role, instance)."""
     table = MaterialTable.for_room(family.appearance, rng)
-    shell = tuple(table.add(find_look(family, name, "body"), rng, shell=True) for name in SHELL_CLASSES)
+    shell = tuple(
+        table.add(find_look(family, name, "body"), rng, shell=True) for name in SHELL_CLASSES
+    )
     solids, sources = room_solids(room)
     keys: dict[tuple, int] = {}
     for gi, g in enumerate(room.groups):  # materials drawn in part order, whatever the shape
@@ -128,7 +132,8 @@ class FrameRenderer:
         return tiles
 
     def _projected_bounds(self, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per box, its image bounds (u0, u1, v0, v1), and whether it is at least partly in front."""
+        """Per box, its image bounds (u0, u1, v0, v1), and whether it is at least partly in
+        front."""
         R, t = pose[:3, :3], pose[:3, 3]
         cam = (self.corners - t) @ R  # world -> camera: R^T (p - t), as row vectors
         z = cam[..., 2]
@@ -142,7 +147,9 @@ class FrameRenderer:
         rect[~all_front] = [-big, big, -big, big]
         return rect, front
 
-    def render(self, pose: np.ndarray, exposure: float, noise_std: float, noise_rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def render(
+        self, pose: np.ndarray, exposure: float, noise_std: float, noise_rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(colour uint8 (H, W, 3), z-depth float32 (H, W), labels uint8 (H, W)) for ``pose``."""
         m, intr = self.model, self.intr
         origins, dirs = pixel_rays(intr, pose)
@@ -155,7 +162,13 @@ class FrameRenderer:
         box_t = np.full(n, np.inf)
         rect, front = self._projected_bounds(pose)
         for x0, x1, y0, y1, idx in self.tiles:
-            cand = np.nonzero(front & (rect[:, 1] >= x0 - 1) & (rect[:, 0] <= x1) & (rect[:, 3] >= y0 - 1) & (rect[:, 2] <= y1))[0]
+            cand = np.nonzero(
+                front
+                & (rect[:, 1] >= x0 - 1)
+                & (rect[:, 0] <= x1)
+                & (rect[:, 3] >= y0 - 1)
+                & (rect[:, 2] <= y1)
+            )[0]
             if len(cand) == 0:
                 continue
             t_hit, local_idx = m.solids.subset(cand).closest_hit(origin, d[idx], t_shell[idx])
@@ -168,7 +181,11 @@ class FrameRenderer:
         normal = np.zeros((n, 3))
         normal[np.arange(n), s_axis] = -s_side
         labels = np.where(s_axis == 2, np.where(s_side < 0, FLOOR, CEILING), WALL).astype(np.uint8)
-        mat = np.where(s_axis == 2, np.where(s_side < 0, m.shell_material[1], m.shell_material[2]), m.shell_material[0])
+        mat = np.where(
+            s_axis == 2,
+            np.where(s_side < 0, m.shell_material[1], m.shell_material[2]),
+            m.shell_material[0],
+        )
         points = origin + t[:, None] * d
         local = points.copy()
 
@@ -186,11 +203,24 @@ class FrameRenderer:
 
         rho = albedo(m.materials, mat, local, axis)
         chunks = [idx for *_, idx in self.tiles]
-        e = irradiance(points, normal, m.lights, m.ambient, m.falloff_m, self.casters, self.caster_bounds, chunks)
+        e = irradiance(
+            points,
+            normal,
+            m.lights,
+            m.ambient,
+            m.falloff_m,
+            self.casters,
+            self.caster_bounds,
+            chunks,
+        )
         linear = rho * e + m.materials["emission"][mat][:, None] * rho
         rgb = np.clip(exposure * linear, 0.0, 1.0) ** (1 / 2.2)
         if noise_std > 0:
             rgb = rgb + noise_rng.normal(0.0, noise_std, rgb.shape)
-        color = np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8).reshape(intr.height, intr.width, 3)
+        color = (
+            np.clip(np.round(rgb * 255.0), 0, 255)
+            .astype(np.uint8)
+            .reshape(intr.height, intr.width, 3)
+        )
         depth = t.astype(np.float32).reshape(intr.height, intr.width)
         return color, depth, labels.reshape(intr.height, intr.width)

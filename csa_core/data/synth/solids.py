@@ -40,7 +40,9 @@ class CapsuleSet:
     def corners(self) -> np.ndarray:
         """The 8 corners of every capsule's world bounds, (n, 8, 3)."""
         lo, hi = self.aabb()
-        pick = np.array([[sx, sy, sz] for sx in (0, 1) for sy in (0, 1) for sz in (0, 1)], dtype=bool)
+        pick = np.array(
+            [[sx, sy, sz] for sx in (0, 1) for sy in (0, 1) for sz in (0, 1)], dtype=bool
+        )
         return np.where(pick[None], hi[:, None, :], lo[:, None, :])
 
     def frame(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -115,7 +117,9 @@ def capsule_entry_paired(origin: np.ndarray, dirs: np.ndarray, caps: CapsuleSet)
     return _entry(dot(rd, ba), dot(rd, oa), dot(rd, ob), *scalars) / norm
 
 
-def capsule_surface(origin: np.ndarray, dirs: np.ndarray, caps: CapsuleSet, idx: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def capsule_surface(
+    origin: np.ndarray, dirs: np.ndarray, caps: CapsuleSet, idx: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """At hits ``origin + t * dirs`` on capsules ``idx``: the texture frame point (m, 3) and
     the outward world normal (m, 3).
 
@@ -164,7 +168,9 @@ class Solids:
         clo, chi = self.caps.aabb()
         return np.concatenate([blo, clo]), np.concatenate([bhi, chi])
 
-    def closest_hit(self, origin: np.ndarray, dirs: np.ndarray, t_max: np.ndarray, eps: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+    def closest_hit(
+        self, origin: np.ndarray, dirs: np.ndarray, t_max: np.ndarray, eps: float = 1e-4
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Nearest solid entered by each ray before ``t_max``: (t, solid index), -1 where none."""
         t, idx = closest_hit(origin, dirs, self.boxes, t_max, eps)
         if len(self.caps):
@@ -177,7 +183,9 @@ class Solids:
             idx = np.where(better, len(self.boxes) + k, idx)
         return t, idx
 
-    def any_hit(self, origin: np.ndarray, dirs: np.ndarray, t_end: np.ndarray, eps: float = 1e-4) -> np.ndarray:
+    def any_hit(
+        self, origin: np.ndarray, dirs: np.ndarray, t_end: np.ndarray, eps: float = 1e-4
+    ) -> np.ndarray:
         """Whether each ray enters some solid with ``eps < t < t_end`` (shadow test)."""
         blocked = any_hit(origin, dirs, self.boxes, t_end, eps)
         if len(self.caps):
@@ -190,20 +198,33 @@ class Solids:
         pts = np.asarray(points, dtype=np.float64)
         q = np.einsum("nji,mnj->mni", self.boxes.rot, pts[:, None, :] - self.boxes.center[None])
         excess = np.abs(q) - self.boxes.half[None]
-        box_d = np.linalg.norm(np.maximum(excess, 0.0), axis=-1) + np.minimum(excess.max(axis=-1), 0.0)
+        box_d = np.linalg.norm(np.maximum(excess, 0.0), axis=-1) + np.minimum(
+            excess.max(axis=-1), 0.0
+        )
         ba = self.caps.b - self.caps.a
         pa = pts[:, None, :] - self.caps.a[None]
-        s = np.clip(np.einsum("mnj,nj->mn", pa, ba) / np.maximum(np.einsum("nj,nj->n", ba, ba), _TINY), 0.0, 1.0)
+        s = np.clip(
+            np.einsum("mnj,nj->mn", pa, ba) / np.maximum(np.einsum("nj,nj->n", ba, ba), _TINY),
+            0.0,
+            1.0,
+        )
         cap_d = np.linalg.norm(pa - s[..., None] * ba[None], axis=-1) - self.caps.radius[None]
         return np.concatenate([box_d, cap_d], axis=1)
 
-    def surface(self, origin: np.ndarray, dirs: np.ndarray, idx: np.ndarray, t_hint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def surface(
+        self, origin: np.ndarray, dirs: np.ndarray, idx: np.ndarray, t_hint: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Exact float64 entry of rays into their solids ``idx`` (all >= 0): ``t`` (m,), the
         texture-frame point (m, 3), the face axis (m,) and the outward world normal (m, 3).
         ``t_hint`` is the float32 entry from :meth:`closest_hit`, kept for a ray that grazes a
         capsule so closely that float64 finds no entry."""
         m = len(idx)
-        t, local, axis, normal = np.zeros(m), np.zeros((m, 3)), np.zeros(m, dtype=np.int64), np.zeros((m, 3))
+        t, local, axis, normal = (
+            np.zeros(m),
+            np.zeros((m, 3)),
+            np.zeros(m, dtype=np.int64),
+            np.zeros((m, 3)),
+        )
         nb = len(self.boxes)
         on_box = idx < nb
         if on_box.any():

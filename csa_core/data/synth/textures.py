@@ -17,7 +17,18 @@ import numpy as np
 from csa_core.data.synth.families import Appearance, Look, RoomFamily
 from csa_core.data.synth.noise import fbm3, hash01
 
-PATTERNS = ("noise", "wood", "planks", "tiles", "stripes", "hstripes", "brick", "spines", "fabric", "painting")
+PATTERNS = (
+    "noise",
+    "wood",
+    "planks",
+    "tiles",
+    "stripes",
+    "hstripes",
+    "brick",
+    "spines",
+    "fabric",
+    "painting",
+)
 _DEFAULT_LOOK = Look(((150, 150, 150),))
 _MORTAR = np.array([0.42, 0.40, 0.37])
 
@@ -37,7 +48,9 @@ def has_look(family: RoomFamily, label: str, role: str) -> bool:
 SHELL_CLASSES = ("wall", "floor", "ceiling")
 
 
-def shift_color(rgb: tuple[int, int, int], hue_deg: float, sat: float, val: float, tint: np.ndarray) -> np.ndarray:
+def shift_color(
+    rgb: tuple[int, int, int], hue_deg: float, sat: float, val: float, tint: np.ndarray
+) -> np.ndarray:
     """An sRGB 0..255 colour rotated in hue, scaled in saturation and value, then tinted;
     returned as linear reflectance."""
     h, s, v = colorsys.rgb_to_hsv(*(c / 255.0 for c in rgb))
@@ -97,7 +110,9 @@ class MaterialTable:
         val = app.value * np.exp(room_v + rng.normal(0.0, look.value_jitter))
         c1 = shift_color(look.colors[int(rng.integers(len(look.colors)))], hue, sat, val, tint)
         if look.secondary:
-            c2 = shift_color(look.secondary[int(rng.integers(len(look.secondary)))], hue, sat, val, tint)
+            c2 = shift_color(
+                look.secondary[int(rng.integers(len(look.secondary)))], hue, sat, val, tint
+            )
         else:
             c2 = c1 * (1.0 - look.contrast)
         k = self._pick_pattern(look, rng)
@@ -130,7 +145,9 @@ def face_uv(local: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return u, v, w
 
 
-def _pattern_weight(kind: str, u, v, w, p, s, seed) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def _pattern_weight(
+    kind: str, u, v, w, p, s, seed
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Mix weight between the two colours, a brightness factor, and an override mask (mortar)."""
     one = np.ones_like(u)
     if kind == "noise":
@@ -147,12 +164,20 @@ def _pattern_weight(kind: str, u, v, w, p, s, seed) -> tuple[np.ndarray, np.ndar
         grain = 0.5 + 0.5 * np.sin(2 * np.pi * (4.0 * warp + v / (0.4 * pw)))
         tint = 0.82 + 0.36 * hash01(row, col, seed=seed + 1)
         seam = (np.mod(v / pw, 1.0) < 0.04) | (np.mod(uu / pl, 1.0) < 0.006)
-        return 0.6 * grain + 0.4 * hash01(row, col, seed=seed + 2), tint * np.where(seam, 0.55, 1.0), None
+        return (
+            0.6 * grain + 0.4 * hash01(row, col, seed=seed + 2),
+            tint * np.where(seam, 0.55, 1.0),
+            None,
+        )
     if kind == "tiles":
         i, j = np.floor(u / s), np.floor(v / s)
         check = np.mod(i + j, 2.0)
         grout = (np.mod(u / s, 1.0) < 0.02) | (np.mod(v / s, 1.0) < 0.02)
-        wgt = 0.55 * check + 0.25 * hash01(i, j, seed=seed) + 0.2 * fbm3(p / (0.1 * s[:, None]), 2, seed)
+        wgt = (
+            0.55 * check
+            + 0.25 * hash01(i, j, seed=seed)
+            + 0.2 * fbm3(p / (0.1 * s[:, None]), 2, seed)
+        )
         return wgt, np.where(grout, 0.8, 1.0), None
     if kind in ("stripes", "hstripes"):
         coord = u if kind == "stripes" else v
@@ -176,11 +201,17 @@ def _pattern_weight(kind: str, u, v, w, p, s, seed) -> tuple[np.ndarray, np.ndar
         return 0.35 + 0.15 * weave + 0.5 * fbm3(p / s[:, None], 2, seed), one, None
     if kind == "painting":
         f = fbm3(p / s[:, None], 4, seed)
-        return np.clip((f - 0.35) / 0.3, 0.0, 1.0), 0.8 + 0.4 * fbm3(p / (0.3 * s[:, None]), 2, seed + 5), None
+        return (
+            np.clip((f - 0.35) / 0.3, 0.0, 1.0),
+            0.8 + 0.4 * fbm3(p / (0.3 * s[:, None]), 2, seed + 5),
+            None,
+        )
     raise ValueError(f"unknown texture pattern {kind!r}")
 
 
-def albedo(mats: dict[str, np.ndarray], mat_id: np.ndarray, local: np.ndarray, axis: np.ndarray) -> np.ndarray:
+def albedo(
+    mats: dict[str, np.ndarray], mat_id: np.ndarray, local: np.ndarray, axis: np.ndarray
+) -> np.ndarray:
     """Linear albedo (n, 3) at points ``local`` (n, 3) on faces ``axis`` of materials ``mat_id``."""
     out = np.zeros((len(mat_id), 3))
     kinds = mats["pattern"][mat_id]

@@ -55,7 +55,11 @@ def upgrade() -> None:
         batch_op.add_column(sa.Column("owner_key_id", sa.Integer(), nullable=True))
         batch_op.create_index(batch_op.f("ix_scenes_owner_key_id"), ["owner_key_id"], unique=False)
         batch_op.create_foreign_key(
-            "fk_scenes_owner_key_id_api_keys", "api_keys", ["owner_key_id"], ["id"], ondelete="SET NULL"
+            "fk_scenes_owner_key_id_api_keys",
+            "api_keys",
+            ["owner_key_id"],
+            ["id"],
+            ondelete="SET NULL",
         )
 
 

@@ -208,6 +208,7 @@ def test_the_continual_step_trains_the_student_and_reports_the_teacher() -> None
     assert any(not torch.equal(a, b) for a, b in zip(before, model.parameters(), strict=True))
     assert any(not torch.equal(a, b) for a, b in zip(before, teacher.parameters(), strict=True))
 
+
 def test_cotta_continues_online_across_scenes(toy: ToyNet) -> None:
     cotta = CoTTA(toy, CoTTAConfig(lr=1e-3, scales=(1.0,), flip=False))
     cotta.adapt([image(0), image(1)])
@@ -240,7 +241,8 @@ def test_each_preset_sets_the_teachers_scales_and_a_set_overrides_them() -> None
     assert settings(preset("cpu")).scales == (0.75, 1.0, 1.5)
     assert settings(preset("tiny")).scales == (1.0,)
     config = apply_overrides(
-        preset("cpu"), ["cotta.scales=(0.5,0.75,1.0,1.25,1.5,1.75)", "cotta.flip=false", "seg.seed=4"]
+        preset("cpu"),
+        ["cotta.scales=(0.5,0.75,1.0,1.25,1.5,1.75)", "cotta.flip=false", "seg.seed=4"],
     )
     got = settings(config)
     assert (got.scales, got.flip, got.seed) == ((0.5, 0.75, 1.0, 1.25, 1.5, 1.75), False, 4)

@@ -364,7 +364,9 @@ def test_continual_mapping_step_end_to_end(office: Scene, monkeypatch) -> None:
 
     gt = {f.name: f.labels[NYU40_FOLDER] for f in office.frames}
     monkeypatch.setattr(
-        methods, "predict_frames", lambda model, frames, device=None: {f.name: gt[f.name] for f in frames}
+        methods,
+        "predict_frames",
+        lambda model, frames, device=None: {f.name: gt[f.name] for f in frames},
     )
     torch.manual_seed(0)
     model = build_model("lraspp_mobilenet_v3_large")
@@ -387,4 +389,3 @@ def test_continual_mapping_step_end_to_end(office: Scene, monkeypatch) -> None:
     assert record["num_voxels"] > 0 and record["stored_bytes"] == memory.footprint().total_bytes
     assert record["replay"] == {"earlier": 4}
     assert any(not torch.equal(a, b) for a, b in zip(before, model.parameters(), strict=True))
-
