@@ -81,17 +81,7 @@ def register_keys(sub: argparse._SubParsersAction) -> None:
     """``csa keys create|list|revoke``: the service's API keys, straight in its database
     (docs/operations.md "API keys"); the admin routes under /api/v1/keys do the same."""
     p = sub.add_parser("keys", help="create, list and revoke the service's API keys")
-    p.add_argument(
-        "--data-dir",
-        type=Path,
-        default=None,
-        help="the service's data folder (default: $CSA_DATA_DIR or ./csa-data)",
-    )
-    p.add_argument(
-        "--database-url",
-        default=None,
-        help="the service's database (default: SQLite in the data folder)",
-    )
+    _data_args(p)
     actions = p.add_subparsers(dest="keys_action", required=True)
     create = actions.add_parser(
         "create", help="make a key and print it once (only its sha256 is stored)"
