@@ -118,7 +118,7 @@ def render_pairs(
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """NeRF images and labels at the scene's training views (``color=False``: labels only,
     the images dict empty; the labels are the same either way, at about half the time on
-    views with depth: benchmarks/results/speed.md "Labels without colour")."""
+    views with depth: benchmarks/results/speed.md "Label fusion speed and quality")."""
     return render_at_frames(nerf, scene.train_frames, scene.intrinsics, color=color)
 
 

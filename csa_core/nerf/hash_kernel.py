@@ -3,7 +3,7 @@
 The plain-PyTorch encoding (``hash_encoding.HashEncoding.corners_eager`` + ``_HashGather``)
 builds every level's corner rows and trilinear weights as ``(L, N, 8)`` tensors and then gathers;
 on a CPU those temporaries, not the arithmetic, set the cost (benchmarks/results/speed.md,
-"Hash-encoding kernel" and "A fused C kernel for the hash encoding"). This kernel walks each
+"A fused C kernel for the hash encoding"). This kernel walks each
 sample once per level, computes its 8 corners in registers and accumulates the table rows
 straight into the output; the backward pass recomputes the corners and adds the gradient
 into the table rows, one level per thread (levels own disjoint row blocks, so no two threads
