@@ -490,6 +490,12 @@ def cpu() -> AdaptConfig:
                 "optim.rays_per_step=1024",
                 "field.encoding.log2_table_size=14",
                 "optim.final_lr_fraction=1.0",
+                # The field the continual results were measured with (benchmarks/results/
+                # continual.md), kept when the ``fast`` preset moved to a coarser finest level,
+                # 16 semantic levels and the surface term for label fusion.
+                "field.encoding.finest_resolution=1024",
+                "field.semantic_grid_levels=12",
+                "loss.semantic_surface=0",
             ),
         ),
         seg=SegBudget(lr=2e-5, epochs=4, augment=None),

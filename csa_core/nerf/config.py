@@ -190,6 +190,10 @@ class LossConfig:
     # depth: views that see a surface from close by get more say in its fused label. In no
     # preset: its measured effect is in docs/deviations.md, the row on near views' labels.
     semantic_depth_power: float = 0.0
+    # Ours (0 = paper): in the semantic-head steps, this weight times the NLL of each ray's
+    # label under the semantic head evaluated at the ray's measured surface point, beside the
+    # composited term (rays without depth have none).
+    semantic_surface: float = 0.0
 
     def __post_init__(self) -> None:
         if self.semantic_form not in SEMANTIC_FORMS:
@@ -342,8 +346,13 @@ def _fast() -> NerfConfig:
     (``csa_core.adapt.config``) set their own draws and semantic steps."""
     return NerfConfig(
         preset="fast",
+        # A finest level of 512 cells, not 1024, and the semantic table on all 16 levels, not
+        # 12: in a 2^15 table the finest levels of a furnished room collide so often that chairs
+        # and lamps were lost (benchmarks/results/fusion.md "Thin furniture: a coarser finest
+        # level").
         field=FieldConfig(
-            encoding=HashEncodingConfig(log2_table_size=15, finest_resolution=1024),
+            encoding=HashEncodingConfig(log2_table_size=15, finest_resolution=512),
+            semantic_grid_levels=16,
         ),
         sampler=SamplerConfig(
             train="depth",
@@ -372,7 +381,7 @@ def _fast() -> NerfConfig:
             semantic_rays_per_step=8192,
             semantic_lr_fraction=0.1,
         ),
-        loss=LossConfig(free_space=1.0),
+        loss=LossConfig(free_space=1.0, semantic_surface=1.0),
         storage_dtype="float16",
     )
 

@@ -178,6 +178,20 @@ class NerfTrainer:
             self.nerf.eval()
         return {k: float(v.detach()) for k, v in terms.items()}
 
+    def _surface_term(
+        self, ids: Tensor, origins: Tensor, dirs: Tensor, labels: Tensor, weight: Tensor | None
+    ) -> Tensor:
+        """The surface term of the semantic-head steps (``loss.semantic_surface``): the
+        cross-entropy of each ray's label under the semantic head at the ray's measured surface
+        point, weighted as the composited term; rays without depth have none. It votes where
+        the voxel map votes, so a thin part the density renders faintly still gets its label."""
+        depth = self.rays.depth[ids]
+        ok = depth > 0
+        pts = origins[ok] + dirs[ok] * depth[ok, None]
+        _, logits = self.nerf.field.semantics(self.nerf.box.to_unit(pts))
+        w = None if weight is None else weight[ok]
+        return semantic_cross_entropy(logits, labels[ok], w)
+
     def semantic_steps(
         self,
         steps: int,
@@ -191,7 +205,8 @@ class NerfTrainer:
         rays drawn uniformly from every view or label-stratified with their weights as in
         :meth:`step` (``optim.semantic_ray_batches``, by default as ``optim.ray_batches``:
         stratified when it is "class_balanced"), and weighted towards near views
-        with ``loss.semantic_depth_power``; ``on_step(i)`` hears every step (what it raises
+        with ``loss.semantic_depth_power``; with ``loss.semantic_surface`` the loss adds the
+        surface term (:meth:`_surface_term`); ``on_step(i)`` hears every step (what it raises
         ends the steps); returns the last loss."""
         if self.rays.labels is None:
             raise ValueError("semantic steps need labels (RayBank.set_labels)")
@@ -229,7 +244,11 @@ class NerfTrainer:
                 if nerf.config.loss.semantic_form == "semantic_nerf"
                 else semantic_loss
             )
-            loss = form_loss(scores, self.rays.labels[ids], weight)
+            labels = self.rays.labels[ids]
+            loss = form_loss(scores, labels, weight)
+            surface = nerf.config.loss.semantic_surface
+            if surface > 0:
+                loss = loss + surface * self._surface_term(ids, origins, dirs, labels, weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

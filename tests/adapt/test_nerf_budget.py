@@ -39,7 +39,10 @@ EXPECTED: dict[str, tuple[str, dict[str, Any]]] = {
     "cpu": (
         "fast",
         {
+            "field.encoding.finest_resolution": 1024,
             "field.encoding.log2_table_size": 14,
+            "field.semantic_grid_levels": 12,
+            "loss.semantic_surface": 0.0,
             "optim.final_lr_fraction": 1.0,
             "optim.ray_batches": "all",
             "optim.semantic_lr_fraction": 1.0,
@@ -173,7 +176,7 @@ def test_nerf_config_keys_add_items_and_the_old_keys_still_work():
     assert nerf_config(own.nerf).field.encoding.log2_table_size == 14  # cpu's, on reference
     unfine = nerf_config(apply_overrides(preset("tiny"), ["nerf.finest_resolution=none"]).nerf)
     assert (unfine.field.encoding.finest_resolution, unfine.sampler.occupancy_resolution) == (
-        1024,
+        512,
         64,
     )
     items = [

@@ -496,3 +496,36 @@ def test_near_view_weights_weigh_the_semantic_term_of_close_rays_only(scene, mon
     nerf.config.loss.semantic_depth_power = -1.0
     with pytest.raises(ValueError, match="semantic_depth_power"):
         NerfTrainer(nerf, bank, schedule_steps=1)
+
+
+def _surface_nll(nerf, bank) -> float:
+    """NLL of the labels under the semantic head at every labelled pixel's measured surface."""
+    ids = torch.nonzero((bank.depth > 0) & (bank.labels > 0)).squeeze(-1)
+    origins, dirs = bank.rays(ids)
+    with torch.no_grad():
+        _, logits = nerf.field.semantics(nerf.box.to_unit(origins + dirs * bank.depth[ids, None]))
+    return float(torch.nn.functional.cross_entropy(logits, bank.labels[ids].long() - 1))
+
+
+def test_the_surface_term_fits_the_labels_at_the_measured_surface(scene):
+    """``loss.semantic_surface``: the semantic-head steps also fit each ray's label at its
+    measured surface point, so the head there agrees with the labels better than after the
+    same steps without the term; rays without depth add nothing to it."""
+    fitted = fit_semantic_nerf(scene, None, tiny_config(steps=20), progress=False)[0]
+    state = {k: v.clone() for k, v in fitted.state_dict().items()}
+    nll = {}
+    for weight in (0.0, 1.0):
+        fitted.load_state_dict(state)
+        fitted.config.loss.semantic_surface = weight
+        bank = RayBank(scene.train_frames, scene.intrinsics, label_folder="label-nyu40")
+        before = _surface_nll(fitted, bank)
+        NerfTrainer(fitted, bank, schedule_steps=1, seed=3).semantic_steps(15, rays_per_step=256)
+        nll[weight] = _surface_nll(fitted, bank)
+        assert nll[weight] < before
+    assert nll[1.0] < nll[0.0]
+    # Without any measured depth the term is empty and the steps stay finite.
+    fitted.load_state_dict(state)
+    bank = RayBank(scene.train_frames, scene.intrinsics, label_folder="label-nyu40")
+    bank.depth.zero_()
+    trainer = NerfTrainer(fitted, bank, schedule_steps=1, seed=3)
+    assert math.isfinite(trainer.semantic_steps(2, rays_per_step=64))
