@@ -107,7 +107,7 @@ def test_framework_row_measures_the_fit(paper_run, workspace):
 
     from csa_core.adapt.config import preset
     from csa_core.adapt.finetune import step_nerf_budget
-    from csa_core.adapt.pseudo_labels import nerf_config
+    from csa_core.adapt.pseudo_labels import PREDICTION_FOLDER, nerf_config
     from csa_core.data.scene_io import read_scene
     from csa_core.nerf.checkpoint import checkpoint_bytes
     from csa_core.nerf.fit import fit_semantic_nerf
@@ -132,6 +132,8 @@ def test_framework_row_measures_the_fit(paper_run, workspace):
     scene = read_scene(workspace.scenes[0])
     budget = dataclasses.replace(step_nerf_budget(config, scene, mode="gi_nl"), preset="fast")
     fresh = fit_semantic_nerf(scene, config=nerf_config(budget), steps=0, progress=False)[0]
+    # The run fitted the network's predictions: its checkpoint names their folder.
+    fresh.info.label_folder = PREDICTION_FOLDER
     assert rows["checkpoint_bytes"] == len(checkpoint_bytes(fresh))
     assert "| paper (RTX 3090) | - | - | 50 MB | 0.06 | - |" in (paper_run / "paper.md").read_text()
 
