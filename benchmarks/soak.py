@@ -697,6 +697,24 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
+def log_errors(log: Path, limit: int = 5) -> list[tuple[str, int]]:
+    """The server log's distinct exceptions (a traceback's last line: ``module.Error: text``)
+    and their counts, most frequent first, so that a soak with 5xx says what went wrong."""
+    counts: Counter[str] = Counter()
+    in_traceback = False
+    try:
+        lines = log.read_text(errors="replace").splitlines()
+    except OSError:
+        return []
+    for line in lines:
+        if line.startswith("Traceback (most recent call last)"):
+            in_traceback = True
+        elif in_traceback and line and not line[0].isspace():
+            counts[line.strip()[:300]] += 1
+            in_traceback = False
+    return counts.most_common(limit)
+
+
 def run_in_own_loop(coroutine) -> None:
     """``asyncio.run(coroutine)``, in a thread of its own when this thread already runs an event
     loop (a caller inside one, e.g. a test process where a browser driver left its loop running)."""
@@ -771,6 +789,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         run_in_own_loop(run_clients(url, made["keys"], room, args, nerf, record, proc.pid, rss))
         memory = memory_summary(up, traffic_start, memory_mib(proc.pid), rss)
         results = report(record, rss, time.monotonic() - t0, memory=memory)
+        errors = log_errors(work / "serve.log")
+        if record.server_errors and errors:
+            print("the server's log, its exceptions:")
+            for line, n in errors:
+                print(f"  {n} x {line}")
         alive = proc.poll() is None
         if alive:
             print(f"cancelled {cancel_jobs(url, admin_key)} jobs left by the clients")
@@ -779,6 +802,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             minutes=args.minutes,
             database="sqlite" if args.sqlite else "postgresql",
             server_alive=alive,
+            log_errors=[{"exception": line, "count": n} for line, n in errors],
         )
         if not alive:
             print(

@@ -12,6 +12,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
+from server.db.session import release_connection
 from server.deps import DbDep
 from server.errors import APIError
 from server.keys import (
@@ -129,6 +130,8 @@ def check_scene_access(request: Request, db: DbDep) -> None:
     if ref is None or principal.allows(OPERATOR):
         return
     scene = get_scene(db, ref)
+    # The route may go on to await a body (an upload) before it needs the database again.
+    release_connection(db)
     if scene.owner_key_id is None or scene.owner_key_id != principal.key_id:
         raise APIError(
             403,

@@ -19,6 +19,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DataError, InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Receive, Scope, Send
 
@@ -137,6 +138,9 @@ class UnhandledErrorMiddleware:
             except Exception as exc:
                 if tracking_send.started or isinstance(exc, self.passthrough):
                     raise
+                if isinstance(exc, PoolTimeoutError):
+                    await _busy()(scope, receive, send)
+                    return
                 if _database_unavailable(exc):
                     if attempt + 1 < tries and getattr(exc, "connection_invalidated", False):
                         log.warning(
@@ -172,6 +176,21 @@ def _unavailable(exc: BaseException) -> JSONResponse:
         ),
         status_code=503,
         headers={"Retry-After": "5"},
+    )
+
+
+def _busy() -> JSONResponse:
+    """Every connection of this process's database pool stayed taken for
+    ``CSA_DB_POOL_TIMEOUT`` seconds: load to shed, answered before anything was written."""
+    log.warning("database pool exhausted: a request waited CSA_DB_POOL_TIMEOUT for a connection")
+    return JSONResponse(
+        error_body(
+            "database_busy",
+            "every database connection of the service stayed busy; retry shortly"
+            ' (docs/operations.md "Database connections")',
+        ),
+        status_code=503,
+        headers={"Retry-After": "1"},
     )
 
 

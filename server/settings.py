@@ -93,6 +93,14 @@ class Settings(BaseSettings):
     sse_poll_seconds: float = 0.5
     sse_max_seconds: float = 3600.0  # a stream ends after this long; clients reconnect
 
+    # Database connections per API process (docs/operations.md "Database connections"): the
+    # pool holds db_pool_size, opens up to db_max_overflow more under load, and a request that
+    # waits db_pool_timeout seconds for one is answered 503 database_busy. The default total
+    # (40) matches the thread pool that runs the routes, so a connection is there for each.
+    db_pool_size: int = Field(10, ge=1)
+    db_max_overflow: int = Field(30, ge=0)
+    db_pool_timeout: float = Field(10.0, gt=0)
+
     migrate_on_start: bool = True
     device: str = "auto"  # torch device for jobs and inference: auto (CUDA when present), cpu, cuda
     torch_threads: int | None = None  # torch.set_num_threads for jobs and inference
@@ -103,7 +111,7 @@ class Settings(BaseSettings):
     # Renders (POST /api/v1/scenes/{scene}/render, the dashboard's pseudo-label panels;
     # docs/operations.md "Rendering"; server/nerf_cache.py): this many at once per API process,
     # each on torch_threads (default: the cores) / this many threads.
-    render_concurrency: int | None = Field(None, ge=1)  # default: the cores, at most 4
+    render_concurrency: int | None = Field(None, ge=1)  # default: half the cores, 1 to 4
     render_queue_seconds: float = Field(
         30.0, ge=0
     )  # a render that waits longer for its turn: 503 with Retry-After
@@ -131,10 +139,13 @@ class Settings(BaseSettings):
 
     @property
     def resolved_render_concurrency(self) -> int:
-        return self.render_concurrency or min(4, available_cores())
+        """Renders at once: by default half the cores (1 to 4), so that renders, which take
+        seconds of CPU each, leave the other half to predictions, uploads and listings."""
+        return self.render_concurrency or max(1, min(4, available_cores() // 2))
 
     @property
     def render_threads(self) -> int:
-        """Torch threads of each render: the renders together use ``torch_threads`` (default:
-        the cores), each at least one."""
-        return max(1, (self.torch_threads or available_cores()) // self.resolved_render_concurrency)
+        """Torch threads of each render: the renders together use half of ``torch_threads``
+        (default: the cores), each at least one."""
+        threads = (self.torch_threads or available_cores()) // 2
+        return max(1, threads // self.resolved_render_concurrency)

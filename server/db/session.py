@@ -11,10 +11,28 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
 
-def make_engine(url: str) -> Engine:
+def make_engine(
+    url: str,
+    pool_size: int | None = None,
+    max_overflow: int | None = None,
+    pool_timeout: float | None = None,
+) -> Engine:
     """An engine; SQLite files get WAL journaling and a busy timeout so that the API, the
     executor's threads (and API replicas on one host) can share one database file. A PostgreSQL URL
-    without a driver (``postgresql://...``) uses psycopg 3, the driver the server extra installs."""
+    without a driver (``postgresql://...``) uses psycopg 3, the driver the server extra installs.
+
+    ``pool_size``, ``max_overflow`` and ``pool_timeout`` size the connection pool (SQLAlchemy's
+    defaults where ``None``; an in-memory SQLite database has no pool to size): a caller that
+    waits ``pool_timeout`` seconds for a connection gets ``sqlalchemy.exc.TimeoutError``."""
+    pool = {
+        key: value
+        for key, value in (
+            ("pool_size", pool_size),
+            ("max_overflow", max_overflow),
+            ("pool_timeout", pool_timeout),
+        )
+        if value is not None
+    }
     parsed = make_url(url)
     if parsed.drivername == "postgresql":
         parsed = parsed.set(drivername="postgresql+psycopg")
@@ -23,10 +41,12 @@ def make_engine(url: str) -> Engine:
         # is next taken, so the service recovers by itself (docs/operations.md "Database
         # restarts"); connect_timeout bounds a request's wait for a database that is away.
         connect_args = {"connect_timeout": 10} if parsed.get_backend_name() == "postgresql" else {}
-        return create_engine(parsed, pool_pre_ping=True, connect_args=connect_args)
+        return create_engine(parsed, pool_pre_ping=True, connect_args=connect_args, **pool)
     if parsed.database and parsed.database != ":memory:":
         Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
-    engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+    else:
+        pool = {}
+    engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30}, **pool)
 
     @event.listens_for(engine, "connect")
     def _sqlite_pragmas(dbapi_conn, _record) -> None:  # pragma: no cover - trivial
@@ -41,6 +61,14 @@ def make_engine(url: str) -> Engine:
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
     return sessionmaker(bind=engine, expire_on_commit=False)
+
+
+def release_connection(session: Session) -> None:
+    """End ``session``'s transaction so that its connection goes back to the pool; what it
+    loaded stays loaded (the sessions here do not expire on commit). For code that read what
+    it needs and goes on to wait (an upload's body, a render's turn) without the database."""
+    if session.in_transaction():
+        session.commit()
 
 
 @contextmanager

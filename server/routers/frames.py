@@ -13,7 +13,7 @@ from fastapi.responses import FileResponse
 from starlette.concurrency import run_in_threadpool
 
 from server.auth import DeviceScope, SceneAccess
-from server.deps import DbDep, FormPartsChecked, ServicesDep
+from server.deps import DbDep, FormPartsChecked, ServicesDep, read_in_thread
 from server.errors import too_large
 from server.frame_validation import FrameParts, check_frame_name
 from server.pagination import PAGE_RESPONSES, PageDep, page
@@ -79,7 +79,7 @@ async def upload_frame(
         bool, Form(description="overwrite a stored frame of this name that has other content")
     ] = False,
 ) -> FrameUploadOut:
-    scene = scenes.get_scene(db, scene_ref)
+    scene = await read_in_thread(db, scenes.get_scene, scene_ref)
     limit = services.settings.max_frame_upload_bytes
     parts = FrameParts(
         color=await _read(color, "color", limit) or b"",
@@ -162,7 +162,7 @@ async def upload_archive(
     ],
     replace: Annotated[bool, Form()] = False,
 ) -> ArchiveUploadOut:
-    scene = scenes.get_scene(db, scene_ref)
+    scene = await read_in_thread(db, scenes.get_scene, scene_ref)
     st = services.settings
     tmp = Path(tempfile.mkdtemp(prefix="csa-archive-", dir=services.settings.resolved_work_dir))
     try:

@@ -18,7 +18,7 @@ from csa_core.data.label_images import colorize
 from csa_core.errors import CSAInputError
 from server import capabilities
 from server.auth import DeviceScope
-from server.deps import DbDep, FormPartsChecked, ServicesDep
+from server.deps import DbDep, FormPartsChecked, ServicesDep, read_in_thread
 from server.errors import invalid, not_available, too_large
 from server.image_headers import image_format, image_size
 from server.schemas.common import ERROR_RESPONSES
@@ -67,7 +67,7 @@ async def predict(
     data = await image.read(limit + 1)
     if len(data) > limit:
         raise too_large("image", limit)
-    checkpoint = models.checkpoint_of(db, model)
+    checkpoint = await read_in_thread(db, models.checkpoint_of, model)
     sha, name, version_id = checkpoint.sha256, checkpoint.model_name, checkpoint.model_id
     db.close()
     fmt, size = image_format(data), image_size(data)

@@ -12,7 +12,7 @@ from fastapi import APIRouter, Body, Query, status
 from fastapi.responses import StreamingResponse
 
 from server.auth import OperatorScope
-from server.deps import DbDep, ServicesDep
+from server.deps import DbDep, ServicesDep, read_in_thread
 from server.jobs.queue import TERMINAL
 from server.quotas import QueuedJobsQuota
 from server.schemas.common import ERROR_RESPONSES
@@ -93,7 +93,8 @@ def cancel_job(job_id: JobId, db: DbDep) -> JobOut:
     summary="live progress as server-sent events",
 )
 async def job_events(job_id: JobId, db: DbDep, services: ServicesDep) -> StreamingResponse:
-    jobs.show_job(db, job_id)  # 404 for an unknown job, before the stream starts
+    # 404 for an unknown job, before the stream starts
+    await read_in_thread(db, jobs.show_job, job_id)
     db.close()
     settings = services.settings
 

@@ -14,7 +14,7 @@ from starlette.concurrency import run_in_threadpool
 
 from server import capabilities
 from server.auth import OperatorScope, PrincipalDep
-from server.deps import DbDep, FormPartsChecked, ServicesDep
+from server.deps import DbDep, FormPartsChecked, ServicesDep, read_in_thread
 from server.errors import not_available, too_large
 from server.pagination import PAGE_RESPONSES, PageDep, page
 from server.schemas.common import ERROR_RESPONSES, Name
@@ -65,7 +65,7 @@ async def register_model(
     if reason is not None:
         raise not_available(reason)
     lineage = lineage or name
-    models.check_new_root(db, name, lineage)
+    await read_in_thread(db, models.check_new_root, name, lineage)
     limit = services.settings.max_model_upload_bytes
     tmp = Path(tempfile.mkdtemp(prefix="csa-model-", dir=services.settings.resolved_work_dir))
     try:

@@ -13,7 +13,7 @@ from csa_core.data.image_files import depth_to_mm
 from csa_core.data.label_images import colorize
 from server import capabilities
 from server.auth import OperatorScope
-from server.deps import DbDep, ServicesDep
+from server.deps import DbDep, ServicesDep, read_in_thread
 from server.errors import not_available
 from server.nerf_cache import NerfCache
 from server.schemas.common import ERROR_RESPONSES, ErrorBody
@@ -52,7 +52,7 @@ async def render(
         raise not_available(reason)
     pose = np.asarray(body.pose, dtype=np.float64)  # a rigid transform (schemas.common.Pose)
     camera = body.intrinsics.camera() if body.intrinsics is not None else None
-    target = nerfs.render_target(db, scene_ref, body.nerf_id, camera)
+    target = await read_in_thread(db, nerfs.render_target, scene_ref, body.nerf_id, camera)
     intr, nerf_id, files = target.camera, target.nerf.id, target.nerf.files
     db.close()
     cache: NerfCache = request.app.state.nerf_cache

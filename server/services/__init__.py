@@ -48,7 +48,12 @@ class Services:
 def open_services(settings: Settings) -> Services:
     """Connect to the database (migrating it when configured) and open the artifact store."""
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    engine = make_engine(settings.resolved_database_url)
+    engine = make_engine(
+        settings.resolved_database_url,
+        pool_size=settings.db_pool_size,
+        max_overflow=settings.db_max_overflow,
+        pool_timeout=settings.db_pool_timeout,
+    )
     if settings.migrate_on_start:
         upgrade_to_head(engine)
     store = ArtifactStore(settings.resolved_artifact_dir)

@@ -324,7 +324,7 @@ def test_the_route_answers_503_with_retry_after_while_its_renders_are_busy(
     assert gate.calls == 2 and gate.most == 1
 
 
-def test_the_default_concurrency_follows_the_cores_without_oversubscribing_them(
+def test_the_default_concurrency_takes_half_the_cores_for_renders(
     monkeypatch,
 ) -> None:
     import server.settings as settings_module
@@ -336,14 +336,15 @@ def test_the_default_concurrency_follows_the_cores_without_oversubscribing_them(
         monkeypatch.setattr(settings_module, "available_cores", lambda: cores)
         return Settings(_env_file=None, **values)
 
-    for cores, want in ((1, (1, 1)), (2, (2, 1)), (4, (4, 1)), (16, (4, 4))):
+    # (cores, (renders at once, torch threads of each)): renders together take half the cores.
+    for cores, want in ((1, (1, 1)), (2, (1, 1)), (4, (2, 1)), (8, (4, 1)), (16, (4, 2))):
         s = settings(cores)
         assert (s.resolved_render_concurrency, s.render_threads) == want, cores
     s = settings(16, torch_threads=8)
-    assert (s.resolved_render_concurrency, s.render_threads) == (4, 2)
+    assert (s.resolved_render_concurrency, s.render_threads) == (4, 1)
     s = settings(2, render_concurrency=6)
     assert (s.resolved_render_concurrency, s.render_threads) == (6, 1)  # asked for: one each
     monkeypatch.setenv("CSA_RENDER_CONCURRENCY", "3")
     monkeypatch.setenv("CSA_RENDER_QUEUE_SECONDS", "2.5")
     s = settings(16)
-    assert (s.resolved_render_concurrency, s.render_threads, s.render_queue_seconds) == (3, 5, 2.5)
+    assert (s.resolved_render_concurrency, s.render_threads, s.render_queue_seconds) == (3, 2, 2.5)
