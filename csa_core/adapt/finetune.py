@@ -145,6 +145,23 @@ def apply_adabn(
     return adapt_batchnorm(model, images, batch_size=16, device=device, seed=seed)
 
 
+def adabn_only_scores(
+    model: SegmentationNet, scenes: Sequence[Scene], seed: int = 0, device: str | None = None
+) -> list[float]:
+    """Per scene, the validation mIoU of ``model`` (not changed) with only its BatchNorm
+    statistics re-estimated on that scene's training camera images: "AdaBN alone", the
+    reference every method is compared with. Not a continual method: it is told which scene
+    it is in, so nothing is forgotten and its mean is the ACC it would have."""
+    import copy
+
+    scores = []
+    for scene in scenes:
+        m = copy.deepcopy(model)
+        apply_adabn(m, [f.color for f in scene.train_frames], seed=seed, device=device)
+        scores.append(evaluate_scene(m, scene, "val", device=device).miou())
+    return scores
+
+
 def adabn_slice(config: AdaptConfig, pretrain: PretrainReplay | None) -> PretrainReplay | None:
     """The pre-training images AdaBN mixes in: the slice when the config asks for it."""
     return pretrain if config.adabn_mix_pretrain else None

@@ -244,8 +244,9 @@ def run_demo(args: argparse.Namespace) -> int:
     from rich.table import Table
 
     from csa_core.adapt.continual import format_table, run_continual
+    from csa_core.adapt.finetune import adabn_only_scores
     from csa_core.atomic_io import write_text_atomic
-    from csa_core.cli.demo_adapt import adabn_only, plot_steps, pretrain_network
+    from csa_core.cli.demo_adapt import plot_steps, pretrain_network
     from csa_core.data.scene_io import read_scene
     from csa_core.data.sevenscenes import import_7scenes
     from csa_core.data.synth import synthesize
@@ -375,7 +376,7 @@ def run_demo(args: argparse.Namespace) -> int:
         f"({args.mode}, NeRF replay)"
     )
     t = time.perf_counter()
-    adabn = adabn_only(model, target_scenes, config)
+    adabn = adabn_only_scores(model, target_scenes, seed=config.seg.seed, device=config.seg.device)
     result = run_continual(
         model, target_scenes, config, out / "continual", pretrain_scenes=pre_scenes
     )

@@ -9,14 +9,12 @@ this row shows how much of the gain the pseudo-labels add on top of it.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from csa_core.adapt.config import AdaptConfig
 from csa_core.adapt.continual import ContinualResult
 from csa_core.data.scene import Scene
 
@@ -47,22 +45,6 @@ def pretrain_network(
         "seconds": result.seconds,
     }
     return model, info
-
-
-def adabn_only(model: Any, scenes: Sequence[Scene], config: AdaptConfig) -> list[float]:
-    """Val mIoU of the pre-trained network with only its BatchNorm statistics re-estimated on
-    each scene's training camera images (the reference row of the summary)."""
-    from csa_core.adapt.finetune import apply_adabn
-    from csa_core.seg.predict import evaluate_scene
-
-    scores = []
-    for scene in scenes:
-        m = copy.deepcopy(model)
-        apply_adabn(
-            m, [f.color for f in scene.train_frames], seed=config.seg.seed, device=config.seg.device
-        )
-        scores.append(evaluate_scene(m, scene, "val", device=config.seg.device).miou())
-    return scores
 
 
 def summary_rows(result: ContinualResult, adabn: Sequence[float]) -> list[dict[str, Any]]:

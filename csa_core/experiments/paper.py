@@ -34,7 +34,7 @@ import numpy as np
 
 from csa_core.adapt.config import AdaptConfig, nerf_config
 from csa_core.adapt.continual import ContinualResult
-from csa_core.adapt.finetune import step_nerf_budget
+from csa_core.adapt.finetune import adabn_only_scores, step_nerf_budget
 from csa_core.adapt.pseudo_labels import (
     PREDICTION_FOLDER,
     label_miou,
@@ -203,9 +203,15 @@ def run(
                         framework_unit(inputs, parts, scene, name, seed, config, before[scene.name])
                     )
     multi = None
+    adabn: list[list[float]] = []
     if "3" in tables:
         multi = multi_step.run(dataclasses.replace(inputs, methods=list(TAB3_METHODS)))
-    return compose(inputs, tables, before, one_runs, multi, ablation_runs, framework_runs)
+        for seed in inputs.seeds:
+            seg = inputs.config(seed).seg
+            adabn.append(
+                adabn_only_scores(inputs.network(), inputs.scenes, seed=seg.seed, device=seg.device)
+            )
+    return compose(inputs, tables, before, one_runs, multi, ablation_runs, framework_runs, adabn)
 
 
 def framework_unit(
@@ -337,9 +343,12 @@ def compose(
     multi: ExperimentReport | None,
     ablation_runs: list[dict],
     framework_runs: list[dict],
+    adabn: Sequence[Sequence[float]] = (),
 ) -> ExperimentReport:
     """The report: one Markdown document (ours as mean ± std over seeds, the paper's
-    numbers beside), its CSV tables and the PNGs."""
+    numbers beside), its CSV tables and the PNGs. ``adabn``: per seed, AdaBN alone's
+    validation mIoU per scene (:func:`~csa_core.adapt.finetune.adabn_only_scores`), Tab. 3's
+    reference row."""
     n = len(inputs.seeds)
     names = [s.name for s in inputs.scenes]
     seeds = ",".join(str(s) for s in inputs.seeds)
@@ -363,7 +372,7 @@ def compose(
     if "2" in tables:
         sections.append(_tab2(report, names, before, by_method, n))
     if "3" in tables and multi is not None:
-        sections.append(_tab3(report, inputs, multi, n))
+        sections.append(_tab3(report, inputs, multi, n, adabn))
     if "ablations" in tables:
         sections.append(_ablations(report, names, by_method, ablation_runs, n))
     if "framework" in tables:
@@ -527,11 +536,35 @@ def _tab2(
 
 
 def _tab3(
-    report: ExperimentReport, inputs: ExperimentInputs, multi: ExperimentReport, n: int
+    report: ExperimentReport,
+    inputs: ExperimentInputs,
+    multi: ExperimentReport,
+    n: int,
+    adabn: Sequence[Sequence[float]] = (),
 ) -> str:
     names = [s.name for s in inputs.scenes]
     runs = _by(multi.runs, "method", "adabn")
     rows, acc, bwt, groups = [], [], [], []
+    adabn_text = ""
+    if adabn:
+        # AdaBN alone: told which scene it is in, so it forgets nothing (BWT 0 by
+        # construction) and its mean over the scenes is its ACC; no FWT (it never trains).
+        per_scene = np.asarray(adabn, dtype=np.float64)  # (seeds, scenes)
+        acc_adabn = per_scene.mean(axis=1).tolist()
+        rows.append(["AdaBN alone (reference)", _stat_cell(acc_adabn, n), "", "", ""])
+        _row(report, "tab3", "adabn-alone", "acc", "", acc_adabn, n)
+        for j, name in enumerate(names):
+            _row(report, "tab3", "adabn-alone", "val", name, per_scene[:, j].tolist(), n)
+        groups.append("AdaBN alone")
+        acc.append(acc_adabn)
+        bwt.append([0.0] * len(acc_adabn))
+        cells = " / ".join(_stat_cell(per_scene[:, j].tolist(), n) for j in range(len(names)))
+        adabn_text = (
+            "\n\nAdaBN alone (the pre-trained network with BatchNorm statistics re-estimated on "
+            f"each scene's training camera images, no training), per scene: {cells}. It is a "
+            "reference, not a continual method: it is told which scene it is in, so it forgets "
+            "nothing and its ACC is the mean of these."
+        )
     for (method, _adabn), done in runs.items():
         title = multi_step.TITLES[method]
         metric = {k: [float(r["metrics"][k]) for r in done] for k in multi_step.METRICS}
@@ -590,6 +623,7 @@ def _tab3(
         + multi.markdown.split("\n", 2)[-1].strip()
         + "\n\nACC, A, FWT and BWT (mIoU points):\n\n"
         + markdown_table(["method", *(k.upper() for k in multi_step.METRICS)], rows)
+        + adabn_text
         + '\n\nThe paper\'s Tab. 3 numbers are not in docs/method.md "Reference numbers": '
         "none shown."
     )

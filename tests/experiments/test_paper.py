@@ -9,6 +9,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from csa_core.experiments import paper, paper_numbers
@@ -227,6 +228,20 @@ def test_tab3_writes_the_r_heatmap_and_acc_bwt(workspace, tmp_path, capsys, monk
         assert_png(tmp_path / name)
     metrics = read_csv(tmp_path / "paper-tab3-metrics.csv")
     assert [m["method"] for m in metrics] == ["finetune"]
+    # AdaBN alone, the reference row: the pre-trained network with each scene's statistics.
+    from csa_core.adapt.finetune import adabn_only_scores
+    from csa_core.data.scene_io import read_scene
+    from csa_core.seg import load_checkpoint
+
+    assert "| AdaBN alone (reference) |" in stdout and "AdaBN alone (the pre-trained" in stdout
+    rows = [r for r in read_csv(tmp_path / "paper.csv") if r["row"] == "adabn-alone"]
+    by_column = {(r["column"], r["scene"]): float(r["mean"]) for r in rows}
+    net, _ = load_checkpoint(workspace.model, device="cpu")
+    scenes = [read_scene(p) for p in workspace.scenes]
+    want = adabn_only_scores(net, scenes, seed=0, device="cpu")
+    got = [by_column[("val", scene.name)] for scene in scenes]
+    assert got == pytest.approx(want, abs=1e-9)
+    assert by_column[("acc", "")] == pytest.approx(float(np.mean(want)), abs=1e-9)
     # The units are the multi-step experiment's: its --resume would reuse them.
     assert (
         tmp_path / "runs" / "multi-step" / "finetune" / "adabn-on" / "seed0" / "results.json"
