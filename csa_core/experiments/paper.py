@@ -209,7 +209,8 @@ def run(
         for seed in inputs.seeds:
             seg = inputs.config(seed).seg
             adabn.append(
-                adabn_only_scores(inputs.network(), inputs.scenes, seed=seg.seed, device=seg.device)
+                # It changes copies only, so the pre-trained network itself is safe to give.
+                adabn_only_scores(inputs.model, inputs.scenes, seed=seg.seed, device=seg.device)
             )
     return compose(inputs, tables, before, one_runs, multi, ablation_runs, framework_runs, adabn)
 

@@ -69,7 +69,6 @@ async def predict(
         raise too_large("image", limit)
     checkpoint = await read_in_thread(db, models.checkpoint_of, model)
     sha, name, version_id = checkpoint.sha256, checkpoint.model_name, checkpoint.model_id
-    db.close()
     fmt, size = image_format(data), image_size(data)
     if fmt is None or size is None:
         raise invalid("image", "cannot decode image (not a PNG or JPEG file)")

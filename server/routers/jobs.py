@@ -95,7 +95,6 @@ def cancel_job(job_id: JobId, db: DbDep) -> JobOut:
 async def job_events(job_id: JobId, db: DbDep, services: ServicesDep) -> StreamingResponse:
     # 404 for an unknown job, before the stream starts
     await read_in_thread(db, jobs.show_job, job_id)
-    db.close()
     settings = services.settings
 
     async def stream():

@@ -54,7 +54,6 @@ async def render(
     camera = body.intrinsics.camera() if body.intrinsics is not None else None
     target = await read_in_thread(db, nerfs.render_target, scene_ref, body.nerf_id, camera)
     intr, nerf_id, files = target.camera, target.nerf.id, target.nerf.files
-    db.close()
     cache: NerfCache = request.app.state.nerf_cache
     channels = list(dict.fromkeys(body.channels))
 

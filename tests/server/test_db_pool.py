@@ -18,23 +18,18 @@ from tests.server.conftest import API_KEY, start_server, test_settings
 def one_connection(tmp_path):
     """A server whose pool holds a single connection, and a way to take it away."""
 
-    def start(timeout: float):
-        return start_server(
-            test_settings(
-                tmp_path / "data",
-                embedded_worker=False,
-                db_pool_size=1,
-                db_max_overflow=0,
-                db_pool_timeout=timeout,
-            )
-        )
-
     servers = []
 
     def make(timeout: float):
-        live = start(timeout)
-        servers.append(live)
-        return live
+        settings = test_settings(
+            tmp_path / "data",
+            embedded_worker=False,
+            db_pool_size=1,
+            db_max_overflow=0,
+            db_pool_timeout=timeout,
+        )
+        servers.append(start_server(settings))
+        return servers[-1]
 
     yield make
     for live in servers:
