@@ -172,19 +172,25 @@ def memory_summary(
     rss: list[tuple[float, float]],
 ) -> dict[str, float | None]:
     """The server's memory over a soak, MiB: VmRSS when it was up (before the setup), when the
-    traffic started and when it ended, the peak (VmHWM at the end: between samples too), the
-    growth over the traffic, and the slope over its second half (MiB/min; the first half holds
-    the warm-up: the network, the NeRF and the allocator's pools)."""
+    traffic started and when it ended, the peak (VmHWM at the end, which catches peaks between
+    samples too, or the highest sample where that is higher: Linux raises VmHWM lazily, so a
+    short peak that the allocator gave back can stay below a sample of VmRSS), the growth over
+    the traffic, and the slope over its second half (MiB/min; the first half holds the warm-up:
+    the network, the NeRF and the allocator's pools)."""
     seconds = rss[-1][0] if rss else 0.0
     late = [(t, v) for t, v in rss if t >= seconds / 2]
     start_rss = traffic_start["rss"] if traffic_start else None
     end_rss = end["rss"] if end else None
+    sampled_max = max((v for _, v in rss), default=None)
+    peak = end["hwm"] if end else None
+    if peak is not None and sampled_max is not None:
+        peak = max(peak, sampled_max)
     return {
         "up_mib": up["rss"] if up else None,
         "traffic_start_mib": start_rss,
         "end_mib": end_rss,
-        "peak_mib": end["hwm"] if end else None,
-        "sampled_max_mib": max((v for _, v in rss), default=None),
+        "peak_mib": peak,
+        "sampled_max_mib": sampled_max,
         "growth_mib": None if start_rss is None or end_rss is None else end_rss - start_rss,
         "late_slope_mib_per_min": slope_per_minute(late),
     }

@@ -73,3 +73,14 @@ def test_soak_smoke_mode_answers_every_request_without_a_server_error(tmp_path, 
     assert memory["sampled_max_mib"] <= memory["peak_mib"]
     assert memory["growth_mib"] == memory["end_mib"] - memory["traffic_start_mib"]
     assert "server memory (MiB" in printed and "(VmHWM)" in printed
+
+
+def test_the_memory_peak_is_never_below_a_sample() -> None:
+    """Linux raises VmHWM lazily: a short peak the allocator gave back can leave it below a
+    sample of VmRSS, and then the sample is the peak."""
+    bench = _bench()
+    rss = [(0.0, 100.0), (10.0, 130.5), (20.0, 120.0)]
+    below = bench.memory_summary({"rss": 90.0}, {"rss": 100.0}, {"rss": 120.0, "hwm": 130.4}, rss)
+    assert (below["peak_mib"], below["sampled_max_mib"]) == (130.5, 130.5)
+    above = bench.memory_summary({"rss": 90.0}, {"rss": 100.0}, {"rss": 120.0, "hwm": 140.0}, rss)
+    assert (above["peak_mib"], above["sampled_max_mib"]) == (140.0, 130.5)
