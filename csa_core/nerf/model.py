@@ -74,6 +74,11 @@ class SceneInfo:
         )
 
 
+# Below this opacity a rendered ray holds no surface worth a label: labels come from the
+# semantic head at its measured surface point (``SemanticNerf._label_empty_rays``).
+EMPTY_RAY_OPACITY = 1e-6
+
+
 class SemanticNerf(nn.Module):
     """A Semantic-NeRF of one scene: ``render_rays`` turns metric world rays into colour, depth
     (metric z-depth for unit-z rays) and class probabilities."""
@@ -396,14 +401,32 @@ class SemanticNerf(nn.Module):
                 o, d = origins[i : i + chunk], dirs[i : i + chunk]
                 dd = depth[i : i + chunk] if depth is not None else None
                 samples = self.sample(o, d, sampler, depth=dd, density_fn=march_fn)
-                parts.append(
-                    self.render_samples_pruned(
-                        o, d, samples, semantics=semantics, appearance=appearance, color=color
-                    )
+                part = self.render_samples_pruned(
+                    o, d, samples, semantics=semantics, appearance=appearance, color=color
                 )
+                if semantics and dd is not None:
+                    self._label_empty_rays(o, d, dd, part)
+                parts.append(part)
         if not parts:
             return {}
         return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+    def _label_empty_rays(
+        self, origins: Tensor, dirs: Tensor, depth: Tensor, out: dict[str, Tensor]
+    ) -> None:
+        """Give rays with a measured ``depth`` whose samples hold (next to) no rendering weight
+        the semantic head's class distribution at their measured surface point, where the
+        fit's surface term trained it (``LossConfig.semantic_surface``), in ``out["semantics"]``
+        (in place). Such a ray met a part thinner than the field resolves (a chair spindle one
+        pixel wide, carved by the free space beside it); its own distribution, normalised from
+        no weight, was all zeros (``paper``) or uniform (``semantic_nerf``) and read as the
+        first class, wall (benchmarks/results/fusion.md "Thin furniture: empty bands")."""
+        empty = torch.nonzero((depth > 0) & (out["opacity"] < EMPTY_RAY_OPACITY)).squeeze(-1)
+        if empty.numel() == 0:
+            return
+        points = origins[empty] + dirs[empty] * depth[empty, None]
+        _, logits = self.field.semantics(self.box.to_unit(points))
+        out["semantics"][empty] = torch.softmax(logits, dim=-1).to(out["semantics"].dtype)
 
     @torch.inference_mode()
     def _render_band_color(

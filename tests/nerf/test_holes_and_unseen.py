@@ -445,3 +445,29 @@ def test_views_without_depth_render_around_the_estimate_when_asked(
         assert new.color.shape == old.color.shape and new.color.dtype == np.uint8
     assert any(isinstance(m, DepthGuidedSampler) and m.estimate is not None for m in made)
     assert agree / total > 0.9, agree / total
+
+
+@pytest.mark.parametrize("form", ["paper", "semantic_nerf"])
+def test_rays_whose_samples_hold_no_weight_take_the_label_at_their_measured_surface(
+    tiny_nerf, tiny_scene, form
+):
+    """A part thinner than the field resolves leaves its rays' band without weight: their
+    labels come from the semantic head at the measured surface point, not from an all-zero
+    (or uniform) distribution that reads as the first class, wall."""
+    nerf = copy.deepcopy(tiny_nerf)
+    nerf.config.loss.semantic_form = form
+    with torch.no_grad():  # an empty field: zero density everywhere
+        nerf.field.density_mlp[-1].weight[0].zero_()
+        nerf.field.density_mlp[-1].bias[0] = -200.0
+    f = tiny_scene.train_frames[0]
+    (view,) = render_frames(nerf, [(f.name, f.pose)], tiny_scene.intrinsics, [f.depth], color=False)
+    origins, dirs = image_rays(tiny_scene.intrinsics, f.pose)
+    depth = torch.as_tensor(f.depth.reshape(-1))
+    with torch.no_grad():
+        points = origins + dirs * depth[:, None]
+        _, logits = nerf.field.semantics(nerf.box.to_unit(points))
+    expected = (logits.argmax(dim=-1) + 1).numpy().reshape(f.depth.shape)
+    measured = f.depth > 0
+    assert measured.any()
+    assert np.array_equal(view.labels[measured], expected[measured])
+    assert len(np.unique(view.labels[measured])) > 1  # the fitted head's classes, not one
