@@ -411,6 +411,15 @@ class SemanticNerf(nn.Module):
             return {}
         return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
+    def surface_logits(self, origins: Tensor, dirs: Tensor, depth: Tensor) -> Tensor:
+        """The semantic head's logits (R, C) at the surface points ``origins + dirs * depth``
+        of rays (R, 3) with measured ``depth`` (R,): where the voxel map votes, read by the
+        semantic-head steps' surface term and by the labels of rays without weight; only the
+        semantic head sees gradients."""
+        points = origins + dirs * depth[:, None]
+        _, logits = self.field.semantics(self.box.to_unit(points))
+        return logits
+
     def _label_empty_rays(
         self, origins: Tensor, dirs: Tensor, depth: Tensor, out: dict[str, Tensor]
     ) -> None:
@@ -424,8 +433,7 @@ class SemanticNerf(nn.Module):
         empty = torch.nonzero((depth > 0) & (out["opacity"] < EMPTY_RAY_OPACITY)).squeeze(-1)
         if empty.numel() == 0:
             return
-        points = origins[empty] + dirs[empty] * depth[empty, None]
-        _, logits = self.field.semantics(self.box.to_unit(points))
+        logits = self.surface_logits(origins[empty], dirs[empty], depth[empty])
         out["semantics"][empty] = torch.softmax(logits, dim=-1).to(out["semantics"].dtype)
 
     @torch.inference_mode()

@@ -187,8 +187,7 @@ class NerfTrainer:
         the voxel map votes, so a thin part the density renders faintly still gets its label."""
         depth = self.rays.depth[ids]
         ok = depth > 0
-        pts = origins[ok] + dirs[ok] * depth[ok, None]
-        _, logits = self.nerf.field.semantics(self.nerf.box.to_unit(pts))
+        logits = self.nerf.surface_logits(origins[ok], dirs[ok], depth[ok])
         w = None if weight is None else weight[ok]
         return semantic_cross_entropy(logits, labels[ok], w)
 
