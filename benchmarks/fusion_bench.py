@@ -62,7 +62,9 @@ camera saw 0, unknown, as the map does (``NerfConfig.render_unseen_unknown``; wi
 entry ``fast+observed_resolution=128``, the cells its views' depth measured; its printed
 line also gives ``val_unknown``, the share of held-out pixels left unknown). ``labels-at-depth`` renders one sample
 per ray, at the measured (or, in holes, estimated) depth: the class the semantic field holds at
-the measured surface point, the NeRF's counterpart of the map's depth read-back. ``novel-marched``
+the measured surface point, the NeRF's counterpart of the map's depth read-back. ``label-sigma-0.5`` and
+``label-sigma-0.25`` weight the band's samples by a Gaussian around the measured depth for
+the labels (``SamplerConfig.render_band_label_sigma``). ``novel-marched``
 and ``novel-estimated`` render the held-out views from their poses alone (novel views: colour
 and labels, no depth), every ray marched or rendered around its estimated surface
 (``SamplerConfig.render_novel_estimate``); they give val mIoU, val PSNR and seconds per
@@ -464,6 +466,21 @@ RENDERS = {  # --renders: name -> (row suffix, render options of the fitted mode
     "holes-marched": ("holes marched", [("sampler", "render_hole_estimate", False)], True),
     "unseen-unknown": ("unseen=unknown", [(None, "render_unseen_unknown", True)], True),
     "labels-at-depth": ("labels at the measured depth", [("sampler", "render_band_samples", 1)], True),
+    "label-sigma-0.5": (
+        "band labels x Gaussian, sigma 1/2 band",
+        [("sampler", "render_band_label_sigma", 0.5)],
+        True,
+    ),
+    "label-sigma-0.25": (
+        "band labels x Gaussian, sigma 1/4 band",
+        [("sampler", "render_band_label_sigma", 0.25)],
+        True,
+    ),
+    "unseen-unknown+label-sigma-0.25": (
+        "unseen=unknown, band labels x Gaussian, sigma 1/4 band",
+        [(None, "render_unseen_unknown", True), ("sampler", "render_band_label_sigma", 0.25)],
+        True,
+    ),
     "novel-marched": ("held-out views without depth, marched", [], False),
     "novel-fine-march": (
         "held-out views without depth, marched at the grid's step",
@@ -517,7 +534,7 @@ def render_row(
     row.update(label_scores(rendered, *splits, ("val", scene.val_frames)))
     if colors:
         row["val_psnr"] = held_out_psnr(scene.val_frames, colors)
-    if render == "unseen-unknown":
+    if render.startswith("unseen-unknown"):
         row["val_unknown"] = float(
             np.mean([(rendered[f.name] == 0).mean() for f in scene.val_frames])
         )

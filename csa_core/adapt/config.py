@@ -492,10 +492,13 @@ def cpu() -> AdaptConfig:
                 "optim.final_lr_fraction=1.0",
                 # The field the continual results were measured with (benchmarks/results/
                 # continual.md), kept when the ``fast`` preset moved to a coarser finest level,
-                # 16 semantic levels and the surface term for label fusion.
+                # 16 semantic levels, the surface term and unseen surfaces left unknown for
+                # label fusion.
                 "field.encoding.finest_resolution=1024",
                 "field.semantic_grid_levels=12",
                 "loss.semantic_surface=0",
+                "render_unseen_unknown=false",
+                "observed_resolution=0",
             ),
         ),
         seg=SegBudget(lr=2e-5, epochs=4, augment=None),
@@ -524,6 +527,8 @@ def tiny() -> AdaptConfig:
                 "field.encoding.num_levels=6",
                 "field.encoding.finest_resolution=128",
                 f"sampler.occupancy_resolution={FINE_GRID_OCCUPANCY}",
+                "render_unseen_unknown=false",
+                "observed_resolution=0",
             ),
         ),
         seg=SegBudget(lr=5e-4, epochs=2),

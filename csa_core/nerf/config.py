@@ -127,6 +127,11 @@ class SamplerConfig:
     # ray. False = every ray's colour and depth from the ``render`` sampler (as the paper).
     render_band_color: bool = False
     render_band_min_opacity: float = 0.5
+    # Ours: the class distribution of a ray with measured depth weights its samples by a
+    # Gaussian around that depth as well, of standard deviation ``render_band_label_sigma``
+    # times the band's half-width (labels only; colour, depth and opacity keep the plain
+    # weights). 0 = the plain weights, as the paper.
+    render_band_label_sigma: float = 0.0
     uniform_samples: int = 256  # docs/method.md "Reference numbers": 256 uniform samples per ray
     importance_samples: int = (
         256  # docs/method.md "Reference numbers": 256 importance samples per ray
@@ -158,6 +163,11 @@ class SamplerConfig:
             raise ValueError(
                 "sampler.render_march_steps must be at least 1 (or none), got "
                 f"{self.render_march_steps}"
+            )
+        if self.render_band_label_sigma < 0:
+            raise ValueError(
+                "sampler.render_band_label_sigma must be >= 0 (0 = off), got "
+                f"{self.render_band_label_sigma}"
             )
         for name in ("render_early_stop", "render_min_weight"):
             if not 0 <= getattr(self, name) < 1:
@@ -272,9 +282,9 @@ class NerfConfig:
     render_unseen_unknown: bool = False
     # Ours: cells for the unseen test (visibility.py): the box cut into this many cells per
     # axis, marked by the fit where a training view's depth measured a surface (and one cell
-    # around); 0 = none (the default), the test then uses the training cameras' frusta. At
-    # 128 the cells knew occlusion but were not better than the frusta (benchmarks/results/fusion.md
-    # "Unseen surfaces: cells the training depth measured"), and cost 256 KB per checkpoint.
+    # around); 0 = none (the default), the test then uses the training cameras' frusta. 128
+    # in ``fast`` (256 KB per checkpoint): benchmarks/results/fusion.md "Unseen surfaces:
+    # cells the training depth measured".
     observed_resolution: int = 0
     # Where the hash grid sits (csa_core/nerf/normalization.py). "box" (ours): the scene's
     # box, camera centres and measured depth padded by 10%. "cube" (the paper, the `paper`
@@ -383,6 +393,12 @@ def _fast() -> NerfConfig:
         ),
         loss=LossConfig(free_space=1.0, semantic_surface=1.0),
         storage_dtype="float16",
+        # Labels 0, unknown, where a view's measured surface lies in no cell a training view
+        # measured, as the map abstains there: on walks whose last views look at surfaces
+        # the first ones never measured, the field's guesses there were false positives
+        # (benchmarks/results/fusion.md "Unseen surfaces: cells the training depth measured").
+        render_unseen_unknown=True,
+        observed_resolution=128,
     )
 
 

@@ -261,13 +261,15 @@ class SemanticNerf(nn.Module):
         appearance: int | None = None,
         color: bool = True,
         min_weight: float = 1e-3,
+        label_focus: Tensor | None = None,
     ) -> dict[str, Tensor]:
         """Inference version of :meth:`render_samples` (same outputs but ``weights``): the
         encoding (both tables, one corner computation) and the density everywhere, then the
         colour and semantic MLPs only at the samples whose weight is at least ``min_weight``
         times the largest of their ray (what is dropped are the faint tails in front of and
         behind a surface). Samples that carry the march's features (``samples.features``,
-        from :meth:`_march_features`) are not evaluated again."""
+        from :meth:`_march_features`) are not evaluated again. ``label_focus`` (S,): factors on
+        the samples' weights for the class distribution only (:meth:`_label_focus`)."""
         ri = samples.ray_indices
         t = samples.t_mids
         if samples.features is not None:
@@ -294,6 +296,8 @@ class SemanticNerf(nn.Module):
             result["rgb"] = rgb if self.appearance is None else self.appearance(rgb, appearance)
         if semantics:
             logits = _blocked(self.field.semantic_head, g, None if sem is None else sem[keep])
+            if label_focus is not None:
+                w = w * label_focus[keep]
             result["semantics"], _ = class_distribution(
                 w, logits, kept, self.config.loss.semantic_form
             )
@@ -401,8 +405,15 @@ class SemanticNerf(nn.Module):
                 o, d = origins[i : i + chunk], dirs[i : i + chunk]
                 dd = depth[i : i + chunk] if depth is not None else None
                 samples = self.sample(o, d, sampler, depth=dd, density_fn=march_fn)
+                focus = self._label_focus(samples, dd) if semantics else None
                 part = self.render_samples_pruned(
-                    o, d, samples, semantics=semantics, appearance=appearance, color=color
+                    o,
+                    d,
+                    samples,
+                    semantics=semantics,
+                    appearance=appearance,
+                    color=color,
+                    label_focus=focus,
                 )
                 if semantics and dd is not None:
                     self._label_empty_rays(o, d, dd, part)
@@ -410,6 +421,22 @@ class SemanticNerf(nn.Module):
         if not parts:
             return {}
         return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+    def _label_focus(self, samples: RaySamples, depth: Tensor | None) -> Tensor | None:
+        """Per-sample factors (S,) on the weights of the class distribution: a Gaussian of the
+        sample's distance to its ray's measured ``depth`` (R,), of standard deviation
+        ``SamplerConfig.render_band_label_sigma`` times the ray's band half-width; 1 on rays
+        without a measurement. ``None`` when the option is off or no depth is given. Near a
+        flat panel set in a wall (a window, a mirror) or beside a curtain, the band's outer
+        samples pass close to the neighbouring surface and vote for its class; the surface
+        the sensor measured is at the band's centre."""
+        s = self.config.sampler
+        if depth is None or s.render_band_label_sigma <= 0:
+            return None
+        d = depth[samples.ray_indices]
+        sigma = s.render_band_label_sigma * (s.depth_band + s.depth_band_fraction * d)
+        z = (samples.t_mids - d) / sigma
+        return torch.where(d > 0, torch.exp(-0.5 * z * z), torch.ones_like(z))
 
     def surface_logits(self, origins: Tensor, dirs: Tensor, depth: Tensor) -> Tensor:
         """The semantic head's logits (R, C) at the surface points ``origins + dirs * depth``

@@ -8,7 +8,8 @@ checkpoint alone (it stores the training poses); ``val`` and ``all`` need the sc
 ``unseen_unknown`` (default: the config's ``render_unseen_unknown``, off): a pixel whose
 surface point (its measured depth, else the rendered depth) no training camera sees (with
 ``NerfConfig.observed_resolution`` > 0: that no training view measured,
-``csa_core/nerf/visibility.py``), or whose ray renders no surface at all, gets label 0
+``csa_core/nerf/visibility.py``; the depth holes of a view with depth are then exempt), or
+whose ray renders no surface at all, gets label 0
 (``UNKNOWN``: what the voxel map answers there; ignored by the segmentation loss, a miss in
 the scores) and confidence 0.
 """
@@ -171,7 +172,11 @@ def seen_surface(
     (``SemanticNerf.seen_by_training_cameras``; the image reaches half a pixel beyond the
     outermost pixel centres, so the margin is about one pixel). The point is at the
     measured ``depth`` where there is one, else at the rendered depth (``out``'s depth over
-    its opacity); rays with neither (nothing rendered) count as unseen."""
+    its opacity); rays with neither (nothing rendered) count as unseen. With the cells, the
+    rays in the depth holes of a view with depth count as seen where they render a surface:
+    the cells hold measured surfaces only, and a surface the sensor never returns (dark,
+    shiny) is in no cell although every view saw it; the field's label there is the fill
+    the map's depth read-back cannot give."""
     opacity = out["opacity"]
     found = opacity > 0
     t = out["depth"] / opacity.clamp_min(1e-10)
@@ -182,7 +187,10 @@ def seen_surface(
     points = origins + dirs * t[:, None]
     intr = nerf.info.intrinsics
     margin = 1.0 / min(intr.width, intr.height)
-    return found & nerf.seen_surface_points(points, margin=margin)
+    seen = found & nerf.seen_surface_points(points, margin=margin)
+    if depth is not None and nerf.observed is not None and nerf.observed.marked:
+        seen |= found & ~measured
+    return seen
 
 
 def _view_from_output(

@@ -49,6 +49,8 @@ EXPECTED: dict[str, tuple[str, dict[str, Any]]] = {
             "optim.semantic_rays_per_step": 1024,
             "optim.semantic_steps": 0,
             "optim.steps": 300,
+            "observed_resolution": 0,
+            "render_unseen_unknown": False,
         },
     ),
     "tiny": (
@@ -64,6 +66,8 @@ EXPECTED: dict[str, tuple[str, dict[str, Any]]] = {
             "optim.semantic_steps": 60,
             "optim.steps": 80,
             "sampler.occupancy_resolution": 32,
+            "observed_resolution": 0,
+            "render_unseen_unknown": False,
         },
     ),
 }

@@ -20,6 +20,9 @@ def tiny_config(steps: int = 40) -> NerfConfig:
     cfg.optim.ray_batches = "all"
     cfg.optim.semantic_steps, cfg.optim.semantic_rays_per_step = 0, 256
     cfg.optim.semantic_lr_fraction = 1.0
+    # Labels everywhere: unseen surfaces left unknown have tests of their own
+    # (tests/nerf/test_holes_and_unseen.py).
+    cfg.render_unseen_unknown, cfg.observed_resolution = False, 0
     cfg.sampler.occupancy_resolution = 32
     cfg.sampler.march_steps = 192
     cfg.sampler.uniform_samples = cfg.sampler.importance_samples = 32

@@ -11,10 +11,11 @@ import torch
 
 from csa_core.data.camera import backproject
 from csa_core.data.nyu40 import UNKNOWN
+from csa_core.nerf.config import SamplerConfig, preset
 from csa_core.nerf.normalization import SceneBox
 from csa_core.nerf.rays import RayBank, image_rays
 from csa_core.nerf.render import render_frames, render_pseudo_labels
-from csa_core.nerf.rendering import accumulate_along_rays, render_weights
+from csa_core.nerf.rendering import RaySamples, accumulate_along_rays, render_weights
 from csa_core.nerf.samplers import (
     DepthGuidedSampler,
     GridSurfaceEstimate,
@@ -349,8 +350,9 @@ def test_the_fit_marks_the_cells_of_every_measured_surface_point(tiny_scene):
     assert bool(observed.contains(nerf.box, points).all())
     # Most of the box is empty space or behind the walls: not measured.
     assert 0.0 < float(observed.cells.float().mean()) < 0.5
-    # The default builds none.
-    assert tiny_config().observed_resolution == 0
+    # `reference` builds none; `fast` builds them and leaves unseen surfaces unknown.
+    assert preset("reference").observed_resolution == 0
+    assert preset("fast").observed_resolution == 128 and preset("fast").render_unseen_unknown
 
 
 def test_observed_cells_know_occlusion_where_the_frusta_do_not(tiny_nerf, tiny_scene):
@@ -374,6 +376,44 @@ def test_observed_cells_know_occlusion_where_the_frusta_do_not(tiny_nerf, tiny_s
     assert bool(frusta.all())  # while the camera's image holds both
     nerf.observed = None  # a model without cells: the frusta
     assert torch.equal(nerf.seen_surface_points(pts, margin=0.01), frusta)
+
+
+def test_with_cells_measured_pixels_off_every_cell_are_unknown_and_holes_keep_their_label(
+    tiny_nerf, tiny_scene
+):
+    """With cells, a pixel whose measured surface lies in no cell a training view measured is
+    unknown; a depth hole that renders a surface keeps the field's label (a surface the
+    sensor never returns is in no cell although every view saw it); a training view's own
+    measured pixels are all seen."""
+    nerf = _with_cells(tiny_nerf, tiny_scene)
+    f = tiny_scene.train_frames[0]
+    intr = tiny_scene.intrinsics
+    (plain,) = render_frames(nerf, [(f.name, f.pose)], intr, [f.depth], color=False)
+    (own,) = render_frames(
+        nerf, [(f.name, f.pose)], intr, [f.depth], color=False, unseen_unknown=True
+    )
+    assert np.array_equal(own.labels, plain.labels)  # every measured point marked its cell
+    # The same view with the top half in a hole and the measured bottom half pushed 40 cm
+    # further, behind the surfaces the views measured (into cells none of them marked).
+    depth = f.depth.copy()
+    top = np.zeros(depth.shape, dtype=bool)
+    top[: depth.shape[0] // 2] = True
+    depth[top] = 0
+    bottom = (f.depth > 0) & ~top
+    depth[bottom] += 0.4
+    origins, dirs = image_rays(intr, f.pose)
+    far = origins + dirs * torch.as_tensor(depth.reshape(-1))[:, None]
+    off_cells = ~nerf.seen_surface_points(far).numpy().reshape(depth.shape) & bottom
+    assert off_cells.sum() > 50
+    (view,) = render_frames(
+        nerf, [(f.name, f.pose)], intr, [depth], color=False, unseen_unknown=True
+    )
+    assert np.all(view.labels[off_cells] == UNKNOWN)
+    assert np.all(view.labels[bottom & ~off_cells] != UNKNOWN)
+    (marched,) = render_frames(nerf, [(f.name, f.pose)], intr, [depth], color=False)
+    rendered = top & (marched.labels != UNKNOWN)
+    assert rendered.sum() > 50
+    assert np.array_equal(view.labels[rendered], marched.labels[rendered])
 
 
 def test_observed_cells_mark_points_and_their_neighbours():
@@ -471,3 +511,69 @@ def test_rays_whose_samples_hold_no_weight_take_the_label_at_their_measured_surf
     assert measured.any()
     assert np.array_equal(view.labels[measured], expected[measured])
     assert len(np.unique(view.labels[measured])) > 1  # the fitted head's classes, not one
+
+
+def test_band_label_focus_is_a_gaussian_of_the_distance_to_the_measured_depth(tiny_nerf):
+    """``render_band_label_sigma``: factor 1 at the measured depth, exp(-1/2) one standard
+    deviation (that fraction of the band's half-width) away, 1 on rays without a measurement;
+    no factors at all when the option is off."""
+    nerf = copy.deepcopy(tiny_nerf)
+    s = nerf.config.sampler
+    depth = torch.tensor([2.0, 0.0, 3.0])
+    half = s.depth_band + s.depth_band_fraction * depth
+    t = torch.stack([depth, depth + 0.05 * (depth + 1), depth - 0.25 * half, depth + 0.25 * half])
+    t = t.T.reshape(-1)  # 4 samples per ray, ray-major
+    ri = torch.arange(3).repeat_interleave(4)
+    samples = RaySamples(ri, t - 1e-3, t + 1e-3, 3)
+    assert nerf._label_focus(samples, depth) is None
+    s.render_band_label_sigma = 0.25
+    focus = nerf._label_focus(samples, depth).reshape(3, 4)
+    assert torch.allclose(focus[1], torch.ones(4))  # no measurement: plain weights
+    for r in (0, 2):
+        assert focus[r, 0] == pytest.approx(1.0)
+        assert focus[r, 2] == pytest.approx(float(np.exp(-0.5)), rel=1e-4)
+        assert focus[r, 3] == pytest.approx(float(np.exp(-0.5)), rel=1e-4)
+        assert 0 < focus[r, 1] < 1
+    with pytest.raises(ValueError, match="render_band_label_sigma"):
+        SamplerConfig(render_band_label_sigma=-0.1)
+
+
+@pytest.mark.parametrize("form", ["paper", "semantic_nerf"])
+def test_band_label_focus_changes_labels_only(tiny_nerf, tiny_scene, form):
+    """The Gaussian on the band's label weights leaves colour, depth and opacity as they
+    were, changes the class distribution of some rays, and a narrow one reads the class the
+    semantic field holds at the band sample nearest the measured depth."""
+    nerf = copy.deepcopy(tiny_nerf)
+    nerf.config.loss.semantic_form = form
+    f = tiny_scene.train_frames[0]
+    origins, dirs = image_rays(tiny_scene.intrinsics, f.pose)
+    depth = torch.as_tensor(f.depth.reshape(-1))
+    plain = nerf.render_rays(origins, dirs, depth=depth)
+    nerf.config.sampler.render_band_label_sigma = 0.05
+    focused = nerf.render_rays(origins, dirs, depth=depth)
+    for key in ("rgb", "depth", "opacity"):
+        assert torch.equal(plain[key], focused[key]), key
+    measured = depth > 0
+    assert not torch.allclose(plain["semantics"][measured], focused["semantics"][measured])
+    # The band sample nearest the measured depth, and the class the field holds there.
+    band = nerf.render_sampler(with_depth=True)
+    with torch.no_grad():
+        samples = nerf.sample(origins, dirs, band, depth=depth)
+        gap = (samples.t_mids - depth[samples.ray_indices]).abs()
+        nearest = torch.full((depth.shape[0],), float("inf")).scatter_reduce(
+            0, samples.ray_indices, gap, reduce="amin"
+        )
+        pick = torch.nonzero(gap == nearest[samples.ray_indices]).squeeze(-1)
+        rays = samples.ray_indices[pick]
+        pts = origins[rays] + dirs[rays] * samples.t_mids[pick, None]
+        _, logits = nerf.field.semantics(nerf.box.to_unit(pts))
+    held = torch.full((depth.shape[0],), -1, dtype=torch.long)
+    held[rays] = logits.argmax(dim=-1)
+    opaque = measured & (focused["opacity"] > 0.5)
+    assert opaque.sum() > 100
+
+    def agree(out):
+        return (out["semantics"].argmax(dim=-1) == held)[opaque].float().mean().item()
+
+    assert agree(focused) > 0.97, agree(focused)
+    assert agree(focused) > agree(plain)
