@@ -8,7 +8,7 @@ checkpoint alone (it stores the training poses); ``val`` and ``all`` need the sc
 ``unseen_unknown`` (default: the config's ``render_unseen_unknown``, off): a pixel whose
 surface point (its measured depth, else the rendered depth) no training camera sees (with
 ``NerfConfig.observed_resolution`` > 0: that no training view measured,
-``csa_core/nerf/visibility.py``; the depth holes of a view with depth are then exempt), or
+``csa_core/nerf/visibility.py``, for pixels with measured depth only), or
 whose ray renders no surface at all, gets label 0
 (``UNKNOWN``: what the voxel map answers there; ignored by the segmentation loss, a miss in
 the scores) and confidence 0.
@@ -172,11 +172,11 @@ def seen_surface(
     (``SemanticNerf.seen_by_training_cameras``; the image reaches half a pixel beyond the
     outermost pixel centres, so the margin is about one pixel). The point is at the
     measured ``depth`` where there is one, else at the rendered depth (``out``'s depth over
-    its opacity); rays with neither (nothing rendered) count as unseen. With the cells, the
-    rays in the depth holes of a view with depth count as seen where they render a surface:
-    the cells hold measured surfaces only, and a surface the sensor never returns (dark,
-    shiny) is in no cell although every view saw it; the field's label there is the fill
-    the map's depth read-back cannot give."""
+    its opacity); rays with neither (nothing rendered) count as unseen. With the cells, only
+    rays with a measured depth are tested; rays without one (depth holes, views without
+    depth) count as seen where they render a surface: the cells hold measured surfaces, a
+    surface the sensor never returns (dark, shiny) is in no cell although every view saw
+    it, and a rendered depth is not precise enough to test against a cell."""
     opacity = out["opacity"]
     found = opacity > 0
     t = out["depth"] / opacity.clamp_min(1e-10)
@@ -188,8 +188,8 @@ def seen_surface(
     intr = nerf.info.intrinsics
     margin = 1.0 / min(intr.width, intr.height)
     seen = found & nerf.seen_surface_points(points, margin=margin)
-    if depth is not None and nerf.observed is not None and nerf.observed.marked:
-        seen |= found & ~measured
+    if nerf.observed is not None and nerf.observed.marked:
+        seen |= found & (~measured if depth is not None else torch.ones_like(found))
     return seen
 
 

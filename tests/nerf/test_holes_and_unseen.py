@@ -414,6 +414,10 @@ def test_with_cells_measured_pixels_off_every_cell_are_unknown_and_holes_keep_th
     rendered = top & (marched.labels != UNKNOWN)
     assert rendered.sum() > 50
     assert np.array_equal(view.labels[rendered], marched.labels[rendered])
+    # A view without depth: every ray that renders a surface keeps the field's label.
+    (novel,) = render_frames(nerf, [(f.name, f.pose)], intr, color=False, unseen_unknown=True)
+    (novel_plain,) = render_frames(nerf, [(f.name, f.pose)], intr, color=False)
+    assert np.array_equal(novel.labels, novel_plain.labels)
 
 
 def test_observed_cells_mark_points_and_their_neighbours():

@@ -184,7 +184,9 @@ def test_fit_nerf_on_predictions_fills_the_memory_bank_and_renders(
         decode(view.images["labels"]),
     )
     assert color.shape == (30, 40, 3) and depth.dtype == np.uint16 and labels.dtype == np.uint8
-    assert depth.max() > 0 and labels.min() >= 1 and labels.max() <= 40
+    # 0, unknown, only where the fitted field renders no surface (the `fast` preset's
+    # render_unseen_unknown; a view without depth is not tested against the cells).
+    assert depth.max() > 0 and labels.max() <= 40 and (labels >= 1).mean() > 0.9
     half = {"fx": 15.0, "fy": 15.0, "cx": 9.5, "cy": 7.0, "width": 20, "height": 15}
     assert decode(
         c.render(scene, pose.tolist(), intrinsics=half, channels=["depth"]).images["depth"]
