@@ -534,7 +534,7 @@ def render_row(
     row.update(label_scores(rendered, *splits, ("val", scene.val_frames)))
     if colors:
         row["val_psnr"] = held_out_psnr(scene.val_frames, colors)
-    if render.startswith("unseen-unknown"):
+    if any(key == "render_unseen_unknown" and value for _, key, value in options):
         row["val_unknown"] = float(
             np.mean([(rendered[f.name] == 0).mean() for f in scene.val_frames])
         )

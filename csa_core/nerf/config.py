@@ -13,10 +13,13 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 from dataclasses import field as _field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from csa_core.data.nyu40 import NUM_CLASSES
 from csa_core.overrides import apply_overrides
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 
 @dataclass
@@ -157,6 +160,11 @@ class SamplerConfig:
     render_march_steps: int | None = None
     render_early_stop: float = 1e-3
     render_min_weight: float = 1e-4
+
+    def band_half_width(self, depth: Tensor) -> Tensor:
+        """Half-width (metres along the ray) of the band around measured ``depth``:
+        ``depth_band`` widened by ``depth_band_fraction`` of the depth."""
+        return self.depth_band + self.depth_band_fraction * depth
 
     def __post_init__(self) -> None:
         if self.render_march_steps is not None and self.render_march_steps < 1:

@@ -434,7 +434,7 @@ class SemanticNerf(nn.Module):
         if depth is None or s.render_band_label_sigma <= 0:
             return None
         d = depth[samples.ray_indices]
-        sigma = s.render_band_label_sigma * (s.depth_band + s.depth_band_fraction * d)
+        sigma = s.render_band_label_sigma * s.band_half_width(d)
         z = (samples.t_mids - d) / sigma
         return torch.where(d > 0, torch.exp(-0.5 * z * z), torch.ones_like(z))
 
@@ -533,7 +533,7 @@ class SemanticNerf(nn.Module):
         s = self.config.sampler
         if self.config.loss.free_space > 0 and free_space_scale > 0 and "depth" in target:
             d = target["depth"][samples.ray_indices]
-            half = s.depth_band + s.depth_band_fraction * d
+            half = s.band_half_width(d)
             in_front = ((d > 0) & (samples.t_ends < d - half)).float()
             out = dict(out)
             out["free_space"] = free_space_scale * free_space_loss(

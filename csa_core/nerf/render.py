@@ -178,18 +178,18 @@ def seen_surface(
     surface the sensor never returns (dark, shiny) is in no cell although every view saw
     it, and a rendered depth is not precise enough to test against a cell."""
     opacity = out["opacity"]
-    found = opacity > 0
     t = out["depth"] / opacity.clamp_min(1e-10)
+    measured = torch.zeros_like(opacity, dtype=torch.bool)
     if depth is not None:
         measured = depth > 0
         t = torch.where(measured, depth, t)
-        found = found | measured
-    points = origins + dirs * t[:, None]
+    found = (opacity > 0) | measured
+    tested = measured if nerf.observed is not None and nerf.observed.marked else found
     intr = nerf.info.intrinsics
     margin = 1.0 / min(intr.width, intr.height)
-    seen = found & nerf.seen_surface_points(points, margin=margin)
-    if nerf.observed is not None and nerf.observed.marked:
-        seen |= found & (~measured if depth is not None else torch.ones_like(found))
+    seen = found & ~tested
+    points = origins[tested] + dirs[tested] * t[tested, None]
+    seen[tested] = nerf.seen_surface_points(points, margin=margin)
     return seen
 
 
