@@ -106,7 +106,8 @@ class NerfBudget:
     Before its items, the budget sets what it decides whatever the NeRF preset says: the
     fit's rays drawn uniformly from every training view (``optim.ray_batches=all``), and the
     semantic-head steps after the fit (``semantic_steps``) drawn the same way, as many rays
-    as a fit step (``optim.rays_per_step``) at the fit's starting rate (``optim.lr``).
+    as a fit step (``optim.rays_per_step``) at the fit's starting rate (``optim.lr``), held
+    constant.
     ``fast`` draws label-balanced rays and adds 300 semantic steps of its own for label fusion
     alone; the adaptation budgets were measured without them (benchmarks/results/fusion.md
     "Label-balanced ray draws"). An item has the last word over these as well.
@@ -190,8 +191,8 @@ class NerfBudget:
 
 def nerf_config(budget: NerfBudget) -> NerfConfig:
     """The NeRF config of a budget's fit: its NeRF preset, then its schedule (``prefit_steps``
-    fit steps, ``semantic_steps`` semantic-head steps at the fit's starting rate, rays drawn
-    from every training view, ``seed``), then its ``overrides`` in order
+    fit steps, ``semantic_steps`` semantic-head steps at the fit's starting rate held
+    constant, rays drawn from every training view, ``seed``), then its ``overrides`` in order
     (``csa_core.nerf.config.build_config``). The semantic-head steps draw as many rays as a fit
     step unless an item sets ``optim.semantic_rays_per_step``. The step's fit runs it on the
     budget of :func:`csa_core.adapt.finetune.step_nerf_budget` (its steps for the scene)."""
@@ -201,6 +202,7 @@ def nerf_config(budget: NerfBudget) -> NerfConfig:
         "optim.semantic_ray_batches=none",
         f"optim.semantic_steps={budget.semantic_steps}",
         "optim.semantic_lr_fraction=1.0",
+        "optim.semantic_final_lr_fraction=1.0",
         f"seed={budget.seed}",
     )
     cfg = build_config(budget.preset, (*schedule, *budget.overrides), flag="nerf.overrides")
@@ -492,11 +494,12 @@ def cpu() -> AdaptConfig:
                 "optim.final_lr_fraction=1.0",
                 # The field the continual results were measured with (benchmarks/results/
                 # continual.md), kept when the ``fast`` preset moved to a coarser finest level,
-                # 16 semantic levels, the surface term and unseen surfaces left unknown for
-                # label fusion.
+                # 16 semantic levels, the surface term, Semantic-NeRF's semantic loss and
+                # unseen surfaces left unknown for label fusion.
                 "field.encoding.finest_resolution=1024",
                 "field.semantic_grid_levels=12",
                 "loss.semantic_surface=0",
+                "loss.semantic_form=paper",
                 "render_unseen_unknown=false",
                 "observed_resolution=0",
             ),
@@ -527,6 +530,7 @@ def tiny() -> AdaptConfig:
                 "field.encoding.num_levels=6",
                 "field.encoding.finest_resolution=128",
                 f"sampler.occupancy_resolution={FINE_GRID_OCCUPANCY}",
+                "loss.semantic_form=paper",
                 "render_unseen_unknown=false",
                 "observed_resolution=0",
             ),

@@ -234,13 +234,19 @@ class OptimConfig:
     final_lr_fraction: float = 0.1  # exponential decay to this fraction of lr at the last step
     weight_decay_mlp: float = 1e-6  # small L2 on MLP weights (Instant-NGP)
     # Ours (0 = paper): after the joint fit, steps on the semantic head alone (geometry frozen,
-    # samples placed the way labels are rendered), ``semantic_rays_per_step`` rays each at a
-    # constant ``lr * semantic_lr_fraction``. A semantic step costs a fraction of a full one,
+    # samples placed the way labels are rendered), ``semantic_rays_per_step`` rays each,
+    # starting at ``lr * semantic_lr_fraction`` (and decaying to
+    # ``semantic_final_lr_fraction`` of it). A semantic step costs a fraction of a full one,
     # so the labels of every pixel are seen several times (benchmarks/results/speed.md, "Label
     # fusion speed and quality").
     semantic_steps: int = 0
     semantic_rays_per_step: int = 4096
     semantic_lr_fraction: float = 1.0
+    # Ours (1.0 = a constant rate): the semantic-head steps' rate decays exponentially to this
+    # fraction of their first one at the last step. Adam moves a hash entry by about its rate
+    # whenever a ray reaches it, so at a constant rate a rarely reached entry holds its last
+    # few rays' labels rather than all of them.
+    semantic_final_lr_fraction: float = 1.0
     # Ours (True = paper): whether the fit's steps train the semantic head too. False leaves
     # the head at its initialisation until the semantic steps above, which then learn the
     # labels through the finished geometry's rendering weights instead of the forming ones
@@ -356,9 +362,10 @@ def _fast() -> NerfConfig:
     training samples with a free-space loss, occupancy-grid rendering, fewer rays per step.
 
     For label fusion: label-balanced ray draws (rare classes get their geometry and labels
-    fitted within the budget) and then 300 semantic-head steps of 8192 rays at a tenth of the
-    rate (about two thirds of a pass over every training pixel's label at 200 views of 160x120,
-    on the finished geometry). Measured against the voxel map on every synthetic family, clean and
+    fitted within the budget) and then 300 semantic-head steps of 8192 rays from a tenth of the
+    rate decaying to 5% of it (about two thirds of a pass over every training pixel's label at
+    200 views of 160x120, on the finished geometry), with Semantic-NeRF's semantic loss
+    (composited logits). Measured against the voxel map on every synthetic family, clean and
     hard, and the real 7-Scenes kitchen:
     benchmarks/results/fusion.md "The `fast` preset for label fusion". The adaptation budgets
     (``csa_core.adapt.config``) set their own draws and semantic steps."""
@@ -398,8 +405,12 @@ def _fast() -> NerfConfig:
             semantic_steps=300,
             semantic_rays_per_step=8192,
             semantic_lr_fraction=0.1,
+            # Decaying to 5% of their rate, and Semantic-NeRF's loss below: the flat panels
+            # of a wall (windows, mirrors) and thin furniture kept on every family
+            # (benchmarks/results/fusion.md "Semantic-NeRF's loss and a decaying rate").
+            semantic_final_lr_fraction=0.05,
         ),
-        loss=LossConfig(free_space=1.0, semantic_surface=1.0),
+        loss=LossConfig(free_space=1.0, semantic_surface=1.0, semantic_form="semantic_nerf"),
         storage_dtype="float16",
         # Labels 0, unknown, where a view's measured surface lies in no cell a training view
         # measured, as the map abstains there: on walks whose last views look at surfaces

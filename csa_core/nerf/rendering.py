@@ -132,8 +132,11 @@ def class_distribution(
 ) -> tuple[Tensor, Tensor | None]:
     """The rendered class distribution (R, C) of ``LossConfig.semantic_form`` ``form`` and,
     for ``semantic_nerf``, the composited logits it is the softmax of (``None`` for
-    ``paper``, whose distribution is :func:`normalized_class_probabilities`)."""
+    ``paper``, whose distribution is :func:`normalized_class_probabilities`). A ray without
+    rendering weight has no class distribution in either form: all zeros (the softmax of its
+    all-zero composited logits would be uniform), so its confidence is 0."""
     if form == "semantic_nerf":
         composited = composited_logits(weights, logits, samples)
-        return torch.softmax(composited, dim=-1), composited
+        weighted = accumulate_along_rays(weights.detach(), None, samples) > 0
+        return torch.softmax(composited, dim=-1) * weighted, composited
     return normalized_class_probabilities(weights, logits, samples), None

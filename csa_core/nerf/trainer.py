@@ -198,8 +198,9 @@ class NerfTrainer:
         rays_per_step: int | None = None,
         on_step: Callable[[int], None] | None = None,
     ) -> float:
-        """``steps`` Adam steps on the semantic head alone (fresh Adam, constant ``lr``, default
-        the config's), samples placed like rendered labels' (``SemanticNerf.render_sampler``,
+        """``steps`` Adam steps on the semantic head alone (fresh Adam from ``lr``, default the
+        config's, decaying exponentially to ``optim.semantic_final_lr_fraction`` of it at the
+        last step), samples placed like rendered labels' (``SemanticNerf.render_sampler``,
         holes in the depth included) but as many in the band as the fit's (``band_samples``),
         rays drawn uniformly from every view or label-stratified with their weights as in
         :meth:`step` (``optim.semantic_ray_batches``, by default as ``optim.ray_batches``:
@@ -210,7 +211,13 @@ class NerfTrainer:
         if self.rays.labels is None:
             raise ValueError("semantic steps need labels (RayBank.set_labels)")
         nerf, gen = self.nerf, self.generator
-        opt = make_adam(nerf.semantic_parameter_groups(), lr or nerf.config.optim.lr, nerf)
+        o = nerf.config.optim
+        opt = make_adam(nerf.semantic_parameter_groups(), lr or o.lr, nerf)
+        fraction = o.semantic_final_lr_fraction
+        if not (math.isfinite(fraction) and 0 < fraction <= 1):
+            raise ValueError(f"optim.semantic_final_lr_fraction must be in (0, 1], got {fraction}")
+        decay = math.exp(math.log(fraction) / max(1, steps - 1))
+        scheduler = torch.optim.lr_scheduler.ExponentialLR(opt, decay)
         # Rays in depth holes sample the way their labels render: in the band around the
         # occupancy grid's surface estimate where the config's ``render_hole_estimate`` is on
         # (marching them cost hard scenes 2-3x the clean scenes' semantic steps:
@@ -251,6 +258,7 @@ class NerfTrainer:
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
+            scheduler.step()
             value = float(loss.detach())
             if on_step is not None:
                 on_step(i)

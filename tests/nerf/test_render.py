@@ -349,10 +349,14 @@ def test_band_colour_is_normalised_and_falls_back_to_the_whole_ray_where_the_ban
     assert np.abs(band.color[used] / 255.0 - expected[used]).max() <= 1.0 / 255 + 1e-6
 
 
-def test_an_empty_occupancy_grid_renders_a_blank_view_instead_of_failing(tiny_nerf, tiny_scene):
+@pytest.mark.parametrize("form", ["paper", "semantic_nerf"])
+def test_an_empty_occupancy_grid_renders_a_blank_view_instead_of_failing(
+    tiny_nerf, tiny_scene, form
+):
     """No occupied cell: no samples on rays without depth. The render is blank (no colour,
-    depth or opacity, zero label confidence), views with depth still get band labels, and a
-    semantic step on such rays is a finite no-op loss rather than an error."""
+    depth or opacity, zero label confidence, with either semantic loss's distribution), views
+    with depth still get band labels, and a semantic step on such rays is a finite no-op loss
+    rather than an error."""
     import torch
 
     from csa_core.nerf.rays import RayBank
@@ -360,6 +364,7 @@ def test_an_empty_occupancy_grid_renders_a_blank_view_instead_of_failing(tiny_ne
     from csa_core.nerf.trainer import NerfTrainer
 
     nerf = copy.deepcopy(tiny_nerf)
+    nerf.config.loss.semantic_form = form
     nerf.grid.occupied.zero_()
     f = tiny_scene.val_frames[0]
     blank = render_image(nerf, f.pose, tiny_scene.intrinsics)

@@ -108,6 +108,34 @@ def test_semantic_steps_move_only_the_semantic_head(nerf, scene):
     )
 
 
+def test_semantic_steps_decay_their_rate_to_the_configured_fraction(nerf, scene, monkeypatch):
+    """``optim.semantic_final_lr_fraction``: the semantic steps' rate falls exponentially from
+    ``lr`` at the first step to ``lr * fraction`` at the last; 1.0 holds it constant."""
+    import csa_core.nerf.trainer as trainer_module
+
+    rates: list[float] = []
+    make = trainer_module.make_adam
+
+    def recording_adam(groups, lr, owner):
+        opt = make(groups, lr, owner)
+        opt.register_step_pre_hook(lambda o, *_: rates.append(o.param_groups[0]["lr"]))
+        return opt
+
+    monkeypatch.setattr(trainer_module, "make_adam", recording_adam)
+    bank = RayBank(scene.train_frames, scene.intrinsics, label_folder="label-nyu40")
+    for fraction in (0.05, 1.0):
+        rates.clear()
+        nerf.config.optim.semantic_final_lr_fraction = fraction
+        NerfTrainer(nerf, bank, 5, seed=0).semantic_steps(5, lr=0.02, rays_per_step=64)
+        assert rates[0] == pytest.approx(0.02) and rates[-1] == pytest.approx(0.02 * fraction)
+        assert len(rates) == 5 and all(a >= b for a, b in zip(rates, rates[1:], strict=False))
+    for bad in (0.0, 1.5, float("nan")):
+        nerf.config.optim.semantic_final_lr_fraction = bad
+        with pytest.raises(ValueError, match="semantic_final_lr_fraction"):
+            NerfTrainer(nerf, bank, 5, seed=0).semantic_steps(1, rays_per_step=64)
+    nerf.config.optim.semantic_final_lr_fraction = 1.0
+
+
 def test_trainer_is_deterministic_for_a_seed(scene):
     runs = []
     for _ in range(2):
@@ -185,10 +213,12 @@ def test_the_budget_semantic_steps_run_inside_the_fit():
 
 
 def test_adaptation_budgets_draw_and_step_as_measured_not_as_the_fusion_preset():
-    """``fast`` fuses labels with label-balanced draws and its own semantic steps at a tenth of
-    the rate; a budget built on it draws uniformly unless an item of its ``overrides`` sets
-    ``optim.ray_batches``, runs its own semantic steps (none by default) at the fit's starting rate
-    (``optim.lr``), and its ``overrides`` still come last."""
+    """``fast`` fuses labels with label-balanced draws and its own semantic steps from a tenth
+    of the rate decaying to 5% of it, with Semantic-NeRF's loss; a budget built on it draws
+    uniformly unless an item of its ``overrides`` sets ``optim.ray_batches``, runs its own
+    semantic steps (none by default) at the fit's starting rate (``optim.lr``) held constant,
+    keeps the paper's loss where its results were measured with it, and its ``overrides``
+    still come last."""
     from csa_core.adapt.config import NerfBudget, cpu, paper, tiny
     from csa_core.adapt.pseudo_labels import nerf_config
     from csa_core.nerf.config import preset
@@ -196,14 +226,18 @@ def test_adaptation_budgets_draw_and_step_as_measured_not_as_the_fusion_preset()
     fast = preset("fast").optim
     assert fast.ray_batches == "class_balanced" and fast.semantic_steps == 300
     assert fast.semantic_rays_per_step == 8192 and fast.semantic_lr_fraction == 0.1
+    assert fast.semantic_final_lr_fraction == 0.05
+    assert preset("fast").loss.semantic_form == "semantic_nerf"
     for budget, draws, steps in (
         (cpu().nerf, "all", 0),
         (tiny().nerf, "all", 60),
         (paper().nerf, "per_view", 0),
     ):
-        o = nerf_config(budget).optim
+        cfg = nerf_config(budget)
+        o = cfg.optim
         assert (o.ray_batches, o.semantic_steps) == (draws, steps)
         assert o.semantic_ray_batches is None and o.semantic_lr_fraction == 1.0
+        assert o.semantic_final_lr_fraction == 1.0 and cfg.loss.semantic_form == "paper"
     balanced = NerfBudget(overrides=("optim.ray_batches=class_balanced",), semantic_steps=5)
     o = nerf_config(balanced).optim
     assert (o.ray_batches, o.semantic_steps, o.semantic_rays_per_step) == (
