@@ -35,6 +35,19 @@ def make_adam(groups: list[dict], lr: float, nerf: SemanticNerf) -> torch.optim.
         return torch.optim.Adam(groups, **kwargs)
 
 
+def exponential_decay(
+    optimizer: torch.optim.Optimizer, fraction: float, steps: int, name: str
+) -> torch.optim.lr_scheduler.ExponentialLR:
+    """A schedule that multiplies ``optimizer``'s rates by the same factor at every step, so
+    that after ``steps`` steps they are ``fraction`` of what they were (1.0: constant);
+    ``fraction`` is the config field ``name`` and must lie in (0, 1]."""
+    if not (math.isfinite(fraction) and 0 < fraction <= 1):
+        raise ValueError(f"{name} must be in (0, 1], got {fraction}")
+    return torch.optim.lr_scheduler.ExponentialLR(
+        optimizer, math.exp(math.log(fraction) / max(1, steps))
+    )
+
+
 class NerfTrainer:
     """Adam steps of ``nerf`` on the pixels of ``rays``.
 
@@ -67,8 +80,9 @@ class NerfTrainer:
             nerf.observed.mark(nerf.box, rays.surface_points())
         self.optimizer = make_adam(nerf.parameter_groups(), lr or o.lr, nerf)
         fraction = o.final_lr_fraction if final_lr_fraction is None else final_lr_fraction
-        decay = math.exp(math.log(fraction) / max(1, schedule_steps))
-        self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, decay)
+        self.scheduler = exponential_decay(
+            self.optimizer, fraction, schedule_steps, "optim.final_lr_fraction"
+        )
         self.generator = torch.Generator(device=rays.device).manual_seed(seed)
         if o.ray_batches not in ("all", "per_view", "class_balanced"):
             raise ValueError(
@@ -213,11 +227,10 @@ class NerfTrainer:
         nerf, gen = self.nerf, self.generator
         o = nerf.config.optim
         opt = make_adam(nerf.semantic_parameter_groups(), lr or o.lr, nerf)
-        fraction = o.semantic_final_lr_fraction
-        if not (math.isfinite(fraction) and 0 < fraction <= 1):
-            raise ValueError(f"optim.semantic_final_lr_fraction must be in (0, 1], got {fraction}")
-        decay = math.exp(math.log(fraction) / max(1, steps - 1))
-        scheduler = torch.optim.lr_scheduler.ExponentialLR(opt, decay)
+        # Reaches the fraction at the last step (the step count less the first).
+        scheduler = exponential_decay(
+            opt, o.semantic_final_lr_fraction, steps - 1, "optim.semantic_final_lr_fraction"
+        )
         # Rays in depth holes sample the way their labels render: in the band around the
         # occupancy grid's surface estimate where the config's ``render_hole_estimate`` is on
         # (marching them cost hard scenes 2-3x the clean scenes' semantic steps:

@@ -134,6 +134,9 @@ def test_semantic_steps_decay_their_rate_to_the_configured_fraction(nerf, scene,
         with pytest.raises(ValueError, match="semantic_final_lr_fraction"):
             NerfTrainer(nerf, bank, 5, seed=0).semantic_steps(1, rays_per_step=64)
     nerf.config.optim.semantic_final_lr_fraction = 1.0
+    # The fit's schedule is made, and checked, the same way.
+    with pytest.raises(ValueError, match="optim.final_lr_fraction must be in"):
+        NerfTrainer(nerf, bank, 5, final_lr_fraction=0.0)
 
 
 def test_trainer_is_deterministic_for_a_seed(scene):
