@@ -212,8 +212,17 @@ class LossConfig:
     # label under the semantic head evaluated at the ray's measured surface point, beside the
     # composited term (rays without depth have none).
     semantic_surface: float = 0.0
+    # Ours: the surface term weighs each ray by one less its band's opacity (detached), so it
+    # trains the head where the composited term cannot (a band without weight: a thin part the
+    # field renders faintly) and leaves the rest to the composited term.
+    semantic_surface_faint_only: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.semantic_surface_faint_only, bool):
+            raise ValueError(
+                "loss.semantic_surface_faint_only must be true or false, "
+                f"got {self.semantic_surface_faint_only!r}"
+            )
         if self.semantic_form not in SEMANTIC_FORMS:
             raise ValueError(
                 f"loss.semantic_form must be one of {', '.join(SEMANTIC_FORMS)}, "

@@ -328,11 +328,14 @@ class SemanticNerf(nn.Module):
             raise ValueError("render_samples_pruned: the march kept no semantic features")
         return features[:, 0], features[:, 1 : 1 + g], sem
 
-    def render_semantics(self, origins: Tensor, dirs: Tensor, samples: RaySamples) -> Tensor:
+    def render_semantics(
+        self, origins: Tensor, dirs: Tensor, samples: RaySamples
+    ) -> tuple[Tensor, Tensor]:
         """What the semantic loss of ``config.loss.semantic_form`` reads, (R, C), with
         gradients for the semantic head only (the density, hence the weights, computed
         without): one semantic training step's forward pass. ``paper``: the class
-        distributions; ``semantic_nerf``: the composited logits."""
+        distributions; ``semantic_nerf``: the composited logits. Also each ray's opacity
+        over its samples (R,), without gradient."""
         ri = samples.ray_indices
         pts = origins[ri] + dirs[ri] * samples.t_mids[:, None]
         sigma, logits = self.field.semantics(self.box.to_unit(pts))
@@ -340,7 +343,8 @@ class SemanticNerf(nn.Module):
         probs, composited = class_distribution(
             weights, logits, samples, self.config.loss.semantic_form
         )
-        return probs if composited is None else composited
+        opacity = accumulate_along_rays(weights.detach(), None, samples)[:, 0]
+        return (probs if composited is None else composited), opacity
 
     def render_rays(
         self,

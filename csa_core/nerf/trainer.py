@@ -193,17 +193,33 @@ class NerfTrainer:
         return {k: float(v.detach()) for k, v in terms.items()}
 
     def _surface_term(
-        self, ids: Tensor, origins: Tensor, dirs: Tensor, labels: Tensor, weight: Tensor | None
+        self,
+        ids: Tensor,
+        origins: Tensor,
+        dirs: Tensor,
+        labels: Tensor,
+        weight: Tensor | None,
+        opacity: Tensor,
     ) -> Tensor:
         """The surface term of the semantic-head steps (``loss.semantic_surface``): the
         cross-entropy of each ray's label under the semantic head at the ray's measured surface
-        point, weighted as the composited term; rays without depth have none. It votes where
-        the voxel map votes, so a thin part the density renders faintly still gets its label."""
+        point, weighted as the composited term (and, with ``loss.semantic_surface_faint_only``,
+        by one less the ray's ``opacity`` over its samples); rays without depth have none. It
+        votes where the voxel map votes, so a thin part the density renders faintly still gets
+        its label."""
         depth = self.rays.depth[ids]
         ok = depth > 0
         logits = self.nerf.surface_logits(origins[ok], dirs[ok], depth[ok])
         w = None if weight is None else weight[ok]
-        return semantic_cross_entropy(logits, labels[ok], w)
+        if not self.nerf.config.loss.semantic_surface_faint_only:
+            return semantic_cross_entropy(logits, labels[ok], w)
+        # The mean over every ray of weight x faintness x cross-entropy: an opaque ray
+        # contributes nothing, and a few faint rays are not scaled up to the whole term.
+        known = labels[ok] > 0
+        base = torch.ones_like(depth[ok]) if w is None else w
+        faint = (1.0 - opacity[ok]).clamp(0.0, 1.0)
+        share = (base * faint)[known].sum() / base[known].sum().clamp_min(1e-12)
+        return share * semantic_cross_entropy(logits, labels[ok], base * faint)
 
     def semantic_steps(
         self,
@@ -256,7 +272,7 @@ class NerfTrainer:
                     stratified=True,
                     generator=gen,
                 )
-            scores = nerf.render_semantics(origins, dirs, samples)
+            scores, opacity = nerf.render_semantics(origins, dirs, samples)
             weight = self.semantic_weights(ids, ray_weight)
             form_loss = (
                 semantic_cross_entropy
@@ -267,7 +283,9 @@ class NerfTrainer:
             loss = form_loss(scores, labels, weight)
             surface = nerf.config.loss.semantic_surface
             if surface > 0:
-                loss = loss + surface * self._surface_term(ids, origins, dirs, labels, weight)
+                loss = loss + surface * self._surface_term(
+                    ids, origins, dirs, labels, weight, opacity
+                )
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

@@ -566,3 +566,37 @@ def test_the_surface_term_fits_the_labels_at_the_measured_surface(scene):
     bank.depth.zero_()
     trainer = NerfTrainer(fitted, bank, schedule_steps=1, seed=3)
     assert math.isfinite(trainer.semantic_steps(2, rays_per_step=64))
+
+
+def test_the_faint_only_surface_term_weighs_each_ray_by_its_missing_opacity(scene):
+    """``loss.semantic_surface_faint_only``: a ray whose samples are opaque adds nothing to the
+    surface term, a ray without weight adds its full share, and the term is a mean over every
+    ray (a few faint rays are not scaled up to the whole term)."""
+    nerf = fit_semantic_nerf(scene, None, tiny_config(steps=5), progress=False)[0]
+    bank = RayBank(scene.train_frames, scene.intrinsics, label_folder="label-nyu40")
+    trainer = NerfTrainer(nerf, bank, schedule_steps=1, seed=0)
+    ids = torch.nonzero((bank.depth > 0) & (bank.labels > 0)).squeeze(-1)[:64]
+    origins, dirs = bank.rays(ids)
+    labels = bank.labels[ids]
+    weight = torch.linspace(0.5, 1.5, len(ids))
+
+    def term(opacity, faint_only=True):
+        nerf.config.loss.semantic_surface_faint_only = faint_only
+        with torch.no_grad():
+            return float(trainer._surface_term(ids, origins, dirs, labels, weight, opacity))
+
+    full = term(torch.zeros(len(ids)), faint_only=False)
+    assert full > 0
+    assert term(torch.zeros(len(ids))) == pytest.approx(full, rel=1e-5)
+    assert term(torch.ones(len(ids))) == 0.0
+    assert term(torch.full((len(ids),), 0.75)) == pytest.approx(0.25 * full, rel=1e-5)
+    # Half the rays opaque: the term is the faint half's weighted sum over all rays' weight.
+    half = torch.cat([torch.ones(32), torch.zeros(32)])
+    nerf.config.loss.semantic_surface_faint_only = False
+    with torch.no_grad():
+        logits = nerf.surface_logits(origins, dirs, bank.depth[ids])
+    ce = torch.nn.functional.cross_entropy(logits, labels.long() - 1, reduction="none")
+    expected = float((ce * weight)[32:].sum() / weight.sum())
+    assert term(half) == pytest.approx(expected, rel=1e-5)
+    with pytest.raises(ValueError, match="semantic_surface_faint_only"):
+        type(nerf.config.loss)(semantic_surface_faint_only="yes")
