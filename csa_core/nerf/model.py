@@ -330,12 +330,13 @@ class SemanticNerf(nn.Module):
 
     def render_semantics(
         self, origins: Tensor, dirs: Tensor, samples: RaySamples
-    ) -> tuple[Tensor, Tensor]:
+    ) -> tuple[Tensor, Tensor | None]:
         """What the semantic loss of ``config.loss.semantic_form`` reads, (R, C), with
         gradients for the semantic head only (the density, hence the weights, computed
         without): one semantic training step's forward pass. ``paper``: the class
         distributions; ``semantic_nerf``: the composited logits. Also each ray's opacity
-        over its samples (R,), without gradient."""
+        over its samples (R,), without gradient, where the surface term reads it
+        (``loss.semantic_surface_faint_only``), else None."""
         ri = samples.ray_indices
         pts = origins[ri] + dirs[ri] * samples.t_mids[:, None]
         sigma, logits = self.field.semantics(self.box.to_unit(pts))
@@ -343,7 +344,9 @@ class SemanticNerf(nn.Module):
         probs, composited = class_distribution(
             weights, logits, samples, self.config.loss.semantic_form
         )
-        opacity = accumulate_along_rays(weights.detach(), None, samples)[:, 0]
+        opacity = None
+        if self.config.loss.semantic_surface_faint_only:
+            opacity = accumulate_along_rays(weights.detach(), None, samples)[:, 0]
         return (probs if composited is None else composited), opacity
 
     def render_rays(

@@ -199,19 +199,19 @@ class NerfTrainer:
         dirs: Tensor,
         labels: Tensor,
         weight: Tensor | None,
-        opacity: Tensor,
+        opacity: Tensor | None,
     ) -> Tensor:
         """The surface term of the semantic-head steps (``loss.semantic_surface``): the
         cross-entropy of each ray's label under the semantic head at the ray's measured surface
-        point, weighted as the composited term (and, with ``loss.semantic_surface_faint_only``,
-        by one less the ray's ``opacity`` over its samples); rays without depth have none. It
-        votes where the voxel map votes, so a thin part the density renders faintly still gets
-        its label."""
+        point, weighted as the composited term (and, given the rays' ``opacity`` over their
+        samples, as with ``loss.semantic_surface_faint_only``, by one less it); rays without
+        depth have none. It votes where the voxel map votes, so a thin part the density renders
+        faintly still gets its label."""
         depth = self.rays.depth[ids]
         ok = depth > 0
         logits = self.nerf.surface_logits(origins[ok], dirs[ok], depth[ok])
         w = None if weight is None else weight[ok]
-        if not self.nerf.config.loss.semantic_surface_faint_only:
+        if opacity is None:
             return semantic_cross_entropy(logits, labels[ok], w)
         # The mean over every ray of weight x faintness x cross-entropy: an opaque ray
         # contributes nothing, and a few faint rays are not scaled up to the whole term.

@@ -580,19 +580,26 @@ def test_the_faint_only_surface_term_weighs_each_ray_by_its_missing_opacity(scen
     labels = bank.labels[ids]
     weight = torch.linspace(0.5, 1.5, len(ids))
 
-    def term(opacity, faint_only=True):
-        nerf.config.loss.semantic_surface_faint_only = faint_only
+    def term(opacity):
         with torch.no_grad():
             return float(trainer._surface_term(ids, origins, dirs, labels, weight, opacity))
 
-    full = term(torch.zeros(len(ids)), faint_only=False)
+    # The semantic steps' forward pass gives the opacity only where the option reads it.
+    samples = nerf.sample(origins, dirs, nerf.render_sampler(with_depth=True), bank.depth[ids])
+    for faint_only in (False, True):
+        nerf.config.loss.semantic_surface_faint_only = faint_only
+        with torch.no_grad():
+            opacity = nerf.render_semantics(origins, dirs, samples)[1]
+        assert (opacity is not None) == faint_only
+    assert opacity.shape == (len(ids),) and bool(((opacity >= 0) & (opacity <= 1 + 1e-5)).all())
+
+    full = term(None)
     assert full > 0
     assert term(torch.zeros(len(ids))) == pytest.approx(full, rel=1e-5)
     assert term(torch.ones(len(ids))) == 0.0
     assert term(torch.full((len(ids),), 0.75)) == pytest.approx(0.25 * full, rel=1e-5)
     # Half the rays opaque: the term is the faint half's weighted sum over all rays' weight.
     half = torch.cat([torch.ones(32), torch.zeros(32)])
-    nerf.config.loss.semantic_surface_faint_only = False
     with torch.no_grad():
         logits = nerf.surface_logits(origins, dirs, bank.depth[ids])
     ce = torch.nn.functional.cross_entropy(logits, labels.long() - 1, reduction="none")
