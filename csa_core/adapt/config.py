@@ -110,7 +110,7 @@ class NerfBudget:
     constant.
     ``fast`` draws label-balanced rays and adds 300 semantic steps of its own for label fusion
     alone; the adaptation budgets were measured without them (benchmarks/results/fusion.md
-    "Label-balanced ray draws"). An item has the last word over these as well.
+    "The `fast` preset for label fusion"). An item has the last word over these as well.
     """
 
     preset: str = "fast"
