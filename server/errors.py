@@ -78,6 +78,16 @@ def storage_full(exc: BaseException) -> bool:
     return isinstance(exc, OSError) and exc.errno in STORAGE_FULL_ERRNOS
 
 
+def is_utf8_text(text: str) -> bool:
+    """Whether ``text`` encodes as UTF-8: not, when it holds a lone surrogate (JSON's
+    ``"\\ud800"``), which no database column holds and no answer can carry."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
 def _printable(text: str) -> str:
     """``text`` as valid UTF-8: a name the client sent as bytes that are not UTF-8 (a tar
     member's, decoded with surrogate escapes) keeps them as ``\\udcff`` escapes, since an

@@ -19,8 +19,8 @@ from sqlalchemy.orm import Session
 from csa_core.data.camera import Intrinsics
 from server import faults
 from server.artifacts import ArtifactStore
-from server.db.models import Frame, Scene
-from server.errors import conflict
+from server.db.models import MAX_ID, Frame, Scene
+from server.errors import conflict, invalid
 from server.frame_validation import SceneCamera, ValidFrame
 
 
@@ -71,11 +71,21 @@ def _order_key(session: Session, scene_id: int, name: str) -> int:
     if name.isdigit():
         return int(name)
     top = session.scalar(select(func.max(Frame.order_key)).where(Frame.scene_id == scene_id))
-    return (top or 0) + 1
+    # After a frame numbered MAX_ID, named frames share its key (ordered by name): the column
+    # and the list's cursors hold no larger number.
+    return min((top or 0) + 1, MAX_ID)
 
 
 def next_frame_name(session: Session, scene_id: int) -> str:
+    """The number after the scene's largest; a 422 naming ``name`` once that would pass
+    :data:`MAX_ID` (the largest numeric name an upload may give)."""
     top = session.scalar(select(func.max(Frame.order_key)).where(Frame.scene_id == scene_id))
+    if top is not None and top >= MAX_ID:
+        raise invalid(
+            "name",
+            f"this scene's frame numbers reach {MAX_ID}, so there is no next number; give the "
+            "frame a name",
+        )
     return str(0 if top is None else top + 1)
 
 

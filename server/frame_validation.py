@@ -1,10 +1,11 @@
 """Validation of one uploaded frame with the core scene-folder readers.
 
 Every part is checked before anything is stored: images decode and are not larger than the
-limit (read from the header first), colour is 8-bit, depth is single-channel uint16
-millimetres, labels are NYU40 ids, the pose is a rigid 4x4 camera-to-world transform and the
-intrinsics a sane camera for the image (the core's rules, ``csa_core.data.camera``), and the
-sizes agree with each other and with the frames already in the scene. Errors name the field.
+limit (read from the header first), colour is 8-bit, depth is a single-channel uint16 PNG in
+millimetres, labels are a PNG of NYU40 ids, the pose is a rigid 4x4 camera-to-world transform
+and the intrinsics a sane camera for the image (the core's rules, ``csa_core.data.camera``),
+and the sizes agree with each other and with the frames already in the scene. Errors name the
+field.
 """
 
 from __future__ import annotations
@@ -82,13 +83,17 @@ def check_frame_name(name: str, field: str = "name") -> str:
 
 
 def _decode_checked(
-    data: bytes, field: str, max_pixels: int, tmp: Path, reader, **kw
+    data: bytes, field: str, max_pixels: int, tmp: Path, reader, png_only: bool = False, **kw
 ) -> np.ndarray:
     if not data:
         raise invalid(field, "empty file")
     fmt = image_format(data)
     if fmt is None:
         raise invalid(field, "cannot decode image (not a PNG or JPEG file)")
+    if png_only and fmt != ".png":
+        # Depth and labels are kept and served as PNG files; JPEG's lossy compression would
+        # change their values (label ids blur into their neighbours' at every edge).
+        raise invalid(field, "must be a PNG file, not a JPEG (lossy compression changes values)")
     size = image_size(data)
     if size is None:
         raise invalid(field, "cannot decode image (unreadable header)")
@@ -156,7 +161,12 @@ def validate_frame(parts: FrameParts, scene: SceneCamera, max_pixels: int) -> Va
         )
         color_size = (color.shape[1], color.shape[0])
         depth = _decode_checked(
-            parts.depth, parts.field("depth"), max_pixels, tmp, image_files.read_depth_mm
+            parts.depth,
+            parts.field("depth"),
+            max_pixels,
+            tmp,
+            image_files.read_depth_mm,
+            png_only=True,
         )
         depth_size = (depth.shape[1], depth.shape[0])
         labels = None
@@ -167,6 +177,7 @@ def validate_frame(parts: FrameParts, scene: SceneCamera, max_pixels: int) -> Va
                 max_pixels,
                 tmp,
                 image_files.read_label_image,
+                png_only=True,
                 max_id=40,
             )
         pose = parse_pose(parts.pose, parts.field("pose"), tmp)

@@ -44,6 +44,9 @@ _UNIT = {
     "d": dt.timedelta(days=1),
     "w": dt.timedelta(weeks=1),
 }
+# The longest lifetime a key may be given. Its expiry is a datetime, which ends with the year 9999
+# (999999w is past it); a key that should not expire is made without one.
+MAX_DURATION = dt.timedelta(days=100 * 365)
 
 
 @dataclass(frozen=True)
@@ -68,12 +71,20 @@ def new_key() -> str:
 
 
 def parse_duration(text: str, field: str = "expires") -> dt.timedelta:
-    """``30d``, ``12h``, ``90m`` or ``2w`` as a time span; a 422 naming ``field`` otherwise."""
+    """``30d``, ``12h``, ``90m`` or ``2w`` as a time span of at most :data:`MAX_DURATION`; a
+    422 naming ``field`` otherwise."""
     match = _DURATION.match(text or "")
     if match is None or int(match.group(1)) == 0:
         units = "a positive number and a unit m, h, d or w: 30d, 12h"
         raise invalid(field, f"{text!r} is not a duration ({units})")
-    return int(match.group(1)) * _UNIT[match.group(2)]
+    duration = int(match.group(1)) * _UNIT[match.group(2)]
+    if duration > MAX_DURATION:
+        raise invalid(
+            field,
+            f"{text!r} is more than {MAX_DURATION.days} days (leave it out for a key that does "
+            "not expire)",
+        )
+    return duration
 
 
 # The settings' generated key (CSA_API_KEYS#n cannot be a name).

@@ -21,7 +21,7 @@ from sqlalchemy import Select, func, select, tuple_
 from sqlalchemy.orm import InstrumentedAttribute, Session
 
 from server.db.models import MAX_ID
-from server.errors import invalid
+from server.errors import invalid, is_utf8_text
 
 # The most rows one answer holds, and the default: a list that fitted in one answer before
 # pages existed still does, up to this many rows.
@@ -111,6 +111,10 @@ def decode_cursor(cursor: str, types: Sequence[type]) -> list[int | str]:
     for v, t in zip(values, types, strict=True):
         # bool is an int to Python, not to a sort key; ints stay inside the ids' 32 bits.
         if type(v) is not t or (t is int and not -MAX_ID - 1 <= v <= MAX_ID):
+            raise bad
+        # JSON escapes can spell text no column holds: a lone surrogate ("\ud800"), which
+        # cannot be encoded for the database, or a NUL character.
+        if t is str and ("\x00" in v or not is_utf8_text(v)):
             raise bad
     return values
 

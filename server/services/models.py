@@ -18,7 +18,7 @@ from csa_core.data.camera import parse_size
 from csa_core.errors import CSAInputError
 from server.artifacts import ArtifactStore
 from server.db.models import Evaluation, ModelVersion, Scene
-from server.errors import conflict, invalid
+from server.errors import conflict, invalid, is_utf8_text
 from server.keys import Principal
 from server.lookups import current_model, get_model
 from server.quotas import UPLOADER_META, account_of_principal, check_stored_bytes
@@ -132,17 +132,24 @@ def check_new_root(db: Session, name: str, lineage: str) -> None:
         raise conflict(taken[1], field=taken[0])
 
 
-def _non_finite_number(value: Any, where: str) -> str | None:
-    """Where a NaN or an infinity sits in parsed JSON (``metrics.miou``), or None. The card's
-    metrics are stored with the version (the database's JSON holds no such numbers: PostgreSQL
-    refuses them, SQLite keeps text that is not JSON) and sent in every listing of the models."""
+def _unstorable(value: Any, where: str) -> str | None:
+    """What makes ``value`` (parsed JSON, found at ``where``) unfit to store and answer, naming
+    where it sits (``metrics.miou is not a finite number ...``), or None. The card's metrics are
+    stored with the version and sent in every listing of the models: the database's JSON holds
+    no NaN or infinity (PostgreSQL refuses them, SQLite keeps text that is not JSON), and no
+    answer can encode a lone surrogate (JSON's ``"\\ud800"``), in a value or a key."""
     todo = [(value, where)]
     while todo:
         item, at = todo.pop()
         if isinstance(item, float) and not math.isfinite(item):
-            return at
+            return f"{at} is not a finite number (NaN and infinities cannot be stored)"
+        if isinstance(item, str) and not is_utf8_text(item):
+            return f"{at} is not Unicode text (it holds a lone surrogate)"
         if isinstance(item, dict):
-            todo.extend((v, f"{at}.{k}") for k, v in item.items())
+            for k, v in item.items():
+                if not is_utf8_text(k):
+                    return f"{at} has a key that is not Unicode text (it holds a lone surrogate)"
+                todo.append((v, f"{at}.{k}"))
         elif isinstance(item, list):
             todo.extend((v, f"{at}[{i}]") for i, v in enumerate(item))
     return None
@@ -170,12 +177,9 @@ def _checked_card(path: Path, max_pixels: int):
                     f"model card input_size: {w}x{h} is more than the limit of {max_pixels} pixels"
                 )
                 raise CSAInputError("checkpoint", problem)
-        where = _non_finite_number(card.metrics, "metrics")
-        if where is not None:
-            problem = (
-                f"model card {where} is not a finite number (NaN and infinities cannot be stored)"
-            )
-            raise CSAInputError("checkpoint", problem)
+        problem = _unstorable(card.metrics, "metrics")
+        if problem is not None:
+            raise CSAInputError("checkpoint", f"model card {problem}")
         load_checkpoint(path, device="cpu")
     except CSAInputError as e:
         raise invalid("checkpoint", e.problem) from None

@@ -3,8 +3,9 @@ entries do not map to one file each, corrupt compressed streams, intrinsic matri
 pinhole matrices, a second depth camera sneaked into a scene, forged model cards (non-finite
 metrics too), uploads racing a scene's deletion, job parameters that would make a job read a
 scene twice or at sizes no frame has, uploads that would hold the event loop, invented HTTP
-methods, non-ASCII CSRF tokens and bodies without a length. Every answer is a 4xx whose
-``field`` names the culprit, nothing is stored, and no error message shows a path of the server.
+methods, non-ASCII CSRF tokens, bodies without a length, labels sent as JPEG and model cards
+holding text no answer can carry. Every answer is a 4xx whose ``field`` names the culprit,
+nothing is stored, and no error message shows a path of the server.
 
 SQLite only, no worker (queued jobs never run): the rules live in the request path.
 """
@@ -1081,6 +1082,26 @@ def test_known_form_parts_still_store_the_frame(http: httpx.Client) -> None:
     assert http.get(f"/api/v1/scenes/{scene}/frames/0/labels").status_code == 200
 
 
+# --- labels as JPEG ------------------------------------------------------------------------
+
+
+def test_labels_sent_as_jpeg_are_refused(http: httpx.Client) -> None:
+    """Labels sent as a JPEG decoded to NYU40 ids and were stored, then served as
+    ``image/png`` under a ``.png`` name with JPEG bytes inside (and linked as
+    ``label-nyu40/<name>.png`` for jobs), where lossy compression had changed the ids at the
+    edges of every region. They are refused naming the part, by frame and in an archive, and
+    nothing is stored."""
+    region = np.full((H, W), 3, np.uint8)
+    region[:, W // 2 :] = 5
+    scene = new_scene(http)
+    r = upload_frame(http, scene, "0", labels=jpg(region))
+    refused(r, 422, "labels", "must be a PNG file, not a JPEG")
+    r = upload_archive(http, scene, tar_of([*SCENE.items(), ("label-nyu40/0.png", jpg(region))]))
+    refused(r, 422, "archive:label-nyu40/0.png", "must be a PNG file, not a JPEG")
+    assert frame_count(http, scene) == 0
+    assert upload_frame(http, scene, "0", labels=png(region)).status_code == 201
+
+
 # --- blobs left behind by a transaction that failed ----------------------------------------
 
 
@@ -1411,3 +1432,33 @@ def test_model_cards_with_non_finite_metrics_are_refused(
         f"model card {where} is not a finite number",
     )
     assert http.get("/api/v1/models").json() == before
+
+
+@pytest.mark.parametrize(
+    ("metrics", "where"),
+    [
+        ({"note": "a\ud800"}, "metrics.note is not Unicode text"),
+        ({"per_scene": ["\udc80"]}, "metrics.per_scene[0] is not Unicode text"),
+        ({"per_scene": {"\ud800": 1.0}}, "metrics.per_scene has a key that is not Unicode"),
+    ],
+    ids=["surrogate", "nested-surrogate", "surrogate-key"],
+)
+def test_model_cards_with_text_no_answer_can_carry_are_refused(
+    http: httpx.Client, metrics: dict, where: str
+) -> None:
+    """JSON escapes spell lone surrogates, which no answer can encode: a card whose metrics
+    held one was registered, its upload answered 500, and from then on every listing of the
+    models and the version itself answered 500. They are refused naming where they sit, and
+    nothing is registered."""
+    from safetensors.torch import save
+
+    card = json.dumps({**BASE_CARD, "metrics": metrics})  # "\ud800" stays an escape
+    before = http.get("/api/v1/models").json()
+    refused(
+        upload_checkpoint(http, save(network_weights(), metadata={"csa": card})),
+        422,
+        "checkpoint",
+        f"model card {where}",
+    )
+    after = http.get("/api/v1/models")
+    assert after.status_code == 200 and after.json() == before

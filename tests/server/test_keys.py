@@ -282,6 +282,42 @@ def test_revocation_and_expiry_take_effect_at_the_next_request(keyed: Keyed) -> 
         assert admin.post("/api/v1/keys/no-such/revoke").status_code == 404
 
 
+def test_lifetimes_past_the_last_expiry_date_are_a_422(keyed: Keyed, capsys) -> None:
+    """``expires_in`` takes six digits and a unit: 999999w is past the year 9999, the last a
+    datetime holds, and answered 500 (OverflowError), and ``csa keys create --expires 999999w``
+    failed with a traceback. A lifetime over 100 years is refused naming the field, and no key
+    is made; 100 years is still a lifetime."""
+    with keyed.http(API_KEY) as admin:
+        for lifetime in ("999999w", "36501d"):
+            r = admin.post(
+                "/api/v1/keys",
+                json={"name": "too-long-lived", "scope": "device", "expires_in": lifetime},
+            )
+            assert r.status_code == 422, r.text[:300]
+            error = r.json()["error"]
+            assert error["field"] == "expires_in" and "more than 36500 days" in error["message"]
+        assert "too-long-lived" not in {k["name"] for k in admin.get("/api/v1/keys").json()}
+    made = keyed.make_key("a-century", "device", expires_in="36500d")
+    assert dt.datetime.fromisoformat(made["expires_at"]).year >= 2100
+    settings = keyed.live.settings
+    where = ["--data-dir", str(settings.data_dir)] + (
+        ["--database-url", settings.database_url] if settings.database_url else []
+    )
+    code, _, err = _cli(
+        capsys,
+        "keys",
+        *where,
+        "create",
+        "--scope",
+        "device",
+        "--name",
+        "robot-9",
+        "--expires",
+        "999999w",
+    )
+    assert code == 1 and "more than 36500 days" in err
+
+
 def test_a_device_key_reaches_only_its_own_scenes(keyed: Keyed) -> None:
     with keyed.http("device") as c:
         r = c.get("/api/v1/scenes")

@@ -471,3 +471,51 @@ def test_a_cursor_this_server_did_not_give_is_a_422_naming_after(paged: Paged, c
 def test_a_cursor_and_an_offset_together_are_a_422(paged: Paged) -> None:
     r = paged.http.get(ROUTES["scenes"], params={"after": encode_cursor([1]), "offset": 2})
     assert r.status_code == 422 and r.json()["error"]["field"] == "offset"
+
+
+@pytest.mark.parametrize("text", ["\x00", "\ud800"], ids=["nul", "lone-surrogate"])
+def test_a_frame_cursor_naming_text_no_column_holds_is_a_422(paged: Paged, text: str) -> None:
+    """A cursor is JSON, whose escapes spell text no frame name holds: a lone surrogate
+    (``"\\ud800"``) cannot be encoded for the database and answered 500 on both backends, and
+    PostgreSQL refused a NUL character with a 422 that named no field. Both are cursors this
+    server never gave out."""
+    r = paged.http.get(ROUTES["frames"], params={"after": encode_cursor([1, f"a{text}"])})
+    assert r.status_code == 422, r.text[:300]
+    assert r.json()["error"]["field"] == "after"
+
+
+def test_frames_after_the_largest_number_get_keys_the_cursors_can_hold(paged: Paged) -> None:
+    """A frame may be named 2147483647, the largest order key. The next frame uploaded without
+    a name was numbered 2147483648, a name the server refuses from a client, and a named frame
+    after it got that order key too: PostgreSQL refused both uploads (a 422 that named no
+    field), SQLite stored them, and then the server refused the cursor of a page ending at one.
+    A frame without a name is now a 422 naming ``name``; a named one shares the largest key
+    (ordered by name), and the cursors walk the whole list."""
+    http = paged.http
+    frames = "/api/v1/scenes/paged-top/frames"
+    rng = np.random.default_rng(2)
+
+    def upload(name: str | None) -> httpx.Response:
+        files = {
+            "color": ("c.png", png(rng.integers(0, 256, (H, W, 3), dtype=np.uint8))),
+            "depth": ("d.png", png(np.full((H, W), 1500, np.uint16))),
+            "pose": ("p.txt", POSE.encode()),
+            "intrinsics": ("k.txt", K.encode()),
+        }
+        return http.post(frames, files=files, data={} if name is None else {"name": name})
+
+    assert http.post("/api/v1/scenes", json={"name": "paged-top"}).status_code == 201
+    try:
+        assert upload(str(MAX_ID)).status_code == 201
+        r = upload(None)
+        assert r.status_code == 422, r.text[:300]
+        assert r.json()["error"]["field"] == "name" and "give the frame a name" in r.text
+        for name in ("later-b", "later-a"):
+            assert upload(name).status_code == 201, name
+        pages = _follow(paged, frames, 1)
+        assert all(p.status_code == 200 for p in pages), pages[-1].text[:300]
+        names = [f["name"] for p in pages for f in p.json()]
+        assert names == [str(MAX_ID), "later-a", "later-b"]
+    finally:
+        http.delete("/api/v1/scenes/paged-top")
+    assert [s["name"] for s in paged.whole("scenes")] == SCENES
