@@ -299,10 +299,7 @@ def test_lifetimes_past_the_last_expiry_date_are_a_422(keyed: Keyed, capsys) -> 
         assert "too-long-lived" not in {k["name"] for k in admin.get("/api/v1/keys").json()}
     made = keyed.make_key("a-century", "device", expires_in="36500d")
     assert dt.datetime.fromisoformat(made["expires_at"]).year >= 2100
-    settings = keyed.live.settings
-    where = ["--data-dir", str(settings.data_dir)] + (
-        ["--database-url", settings.database_url] if settings.database_url else []
-    )
+    where = _database_options(keyed)
     code, _, err = _cli(
         capsys,
         "keys",
@@ -404,6 +401,13 @@ def test_the_audit_log_records_writes(keyed: Keyed) -> None:
     )
 
 
+def _database_options(keyed: Keyed) -> list[str]:
+    """``csa keys`` options that reach the live server's database."""
+    settings = keyed.live.settings
+    url = ["--database-url", settings.database_url] if settings.database_url else []
+    return ["--data-dir", str(settings.data_dir), *url]
+
+
 def _cli(capsys, *args: str) -> tuple[int, str, str]:
     code = csa_main(list(args))
     out = capsys.readouterr()
@@ -411,10 +415,7 @@ def _cli(capsys, *args: str) -> tuple[int, str, str]:
 
 
 def test_csa_keys_commands(keyed: Keyed, capsys) -> None:
-    settings = keyed.live.settings
-    where = ["--data-dir", str(settings.data_dir)] + (
-        ["--database-url", settings.database_url] if settings.database_url else []
-    )
+    where = _database_options(keyed)
     code, out, err = _cli(
         capsys,
         "keys",
