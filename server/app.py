@@ -134,4 +134,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             include_in_schema=False,
         )
     app.include_router(ui.router)  # the dashboard at /ui: its own session auth (server/ui)
+    # FastAPI makes the routes' validation models (parameters, bodies, answers) on first use,
+    # and each under a process-wide warnings filter that hides pydantic's warning about the
+    # aliases FastAPI gives parameters (``after``, ``limit``, ...). At the first request that
+    # would be in a server thread, where another thread restoring its own warnings filters
+    # meanwhile undoes that one and lets the warning out. Writing the OpenAPI document now
+    # makes every route's models, in the thread that makes the app, before it serves anything.
+    app.openapi()
     return app

@@ -32,7 +32,6 @@ READ_ONLY_ROUTES = frozenset(
     {"/api/v1/predict", "/api/v1/scenes/{scene_ref}/render", "/ui/api/predict-preview"}
 )
 _CREATED_BODY_LIMIT = 64 * 1024  # a 201 answer's body is read for its "id" up to this size
-_MAX_PATH = 1024
 
 
 def _is_read_only(template: str) -> bool:
@@ -61,6 +60,19 @@ def _created_id(body: bytes) -> Any:
     return value.get("id") if isinstance(value, dict) else None
 
 
+def _storable(text: str, limit: int | None = None) -> str:
+    """``text`` as any database's text column holds it, cut to ``limit`` characters: a NUL
+    character (a ``%00`` in the path), which PostgreSQL's text cannot hold, as the four
+    characters ``\\x00``, and a lone surrogate, which cannot be encoded for the database, as
+    its ``\\udcff`` escape."""
+    text = text.replace("\x00", "\\x00").encode("utf-8", "backslashreplace").decode("utf-8")
+    return text if limit is None else text[:limit]
+
+
+def _storable_ids(ids: dict[str, Any]) -> dict[str, Any]:
+    return {_storable(k): _storable(v) if isinstance(v, str) else v for k, v in ids.items()}
+
+
 def record(
     sessions,
     principal: Principal,
@@ -70,15 +82,21 @@ def record(
     ids: dict[str, Any],
     status: int,
 ) -> None:
+    """Commits the entry; every text is made storable first (a path may hold any character)."""
+    columns = AuditEntry.__table__.columns
+
+    def text(column: str, value: str) -> str:
+        return _storable(value, columns[column].type.length)
+
     with session_scope(sessions) as db:
         db.add(
             AuditEntry(
-                key_name=principal.name,
-                scope=principal.scope,
-                method=method,
-                route=route[:255],
-                path=path[:_MAX_PATH],
-                ids=ids,
+                key_name=text("key_name", principal.name),
+                scope=text("scope", principal.scope),
+                method=text("method", method),
+                route=text("route", route),
+                path=text("path", path),
+                ids=_storable_ids(ids),
                 status=status,
             )
         )

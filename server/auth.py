@@ -14,7 +14,7 @@ from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBea
 
 from server.db.session import release_connection
 from server.deps import DbDep
-from server.errors import APIError
+from server.errors import APIError, invalid
 from server.keys import (
     ADMIN,
     DEVICE,
@@ -26,6 +26,7 @@ from server.keys import (
     principal_for_hash,
 )
 from server.lookups import get_scene
+from server.schemas.common import NUL_PROBLEM
 from server.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -129,6 +130,8 @@ def check_scene_access(request: Request, db: DbDep) -> None:
     ref = request.path_params.get("scene_ref")
     if ref is None or principal.allows(OPERATOR):
         return
+    if "\x00" in ref:  # this runs before the route checks its parameters (ParamText)
+        raise invalid("scene_ref", NUL_PROBLEM)
     scene = get_scene(db, ref)
     # The route may go on to await a body (an upload) before it needs the database again.
     release_connection(db)

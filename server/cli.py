@@ -126,7 +126,8 @@ def run_keys(args: argparse.Namespace) -> int:
         upgrade_to_head(engine)
         with make_sessionmaker(engine)() as db:
             if args.keys_action == "create":
-                row, key = create_key(db, args.name, args.scope, args.expires)
+                options = {"name": "--name", "scope": "--scope", "expires_in": "--expires"}
+                row, key = create_key(db, args.name, args.scope, args.expires, options)
                 expiry = f", expires {_when(row.expires_at)}" if row.expires_at else ""
                 made = f"created key {row.name!r} (scope {row.scope}{expiry}, prefix {row.prefix})"
                 print(f"{made}; store it now, it is not shown again:", file=sys.stderr)

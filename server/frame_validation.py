@@ -22,7 +22,7 @@ from csa_core.data.camera import Intrinsics, check_pose, intrinsics_from_matrix
 from csa_core.errors import CSAInputError
 from server.db.models import MAX_ID
 from server.errors import APIError, invalid
-from server.image_headers import image_format, image_size
+from server.image_headers import image_format, image_size, jpeg_problem
 
 FRAME_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 ASPECT_TOLERANCE = 0.01  # depth and labels may be stored at another resolution of the same camera
@@ -101,6 +101,8 @@ def _decode_checked(
         raise invalid(
             field, f"image is {size[0]}x{size[1]}, more than the limit of {max_pixels} pixels"
         )
+    if (problem := jpeg_problem(data)) is not None:
+        raise invalid(field, problem)
     path = tmp / f"{field.replace('/', '_')}{fmt}"
     path.write_bytes(data)
     try:

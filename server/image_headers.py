@@ -1,18 +1,36 @@
 """Image format and size from the first bytes of a file, before anything is decoded.
 
 Decoding a tiny PNG that claims 100000 x 100000 pixels would allocate tens of gigabytes;
-reading the header first lets the upload be refused instead.
+reading the header first lets the upload be refused instead. Likewise a small progressive
+JPEG of thousands of scans takes the decoder minutes (it goes over the whole image once per
+scan): :func:`jpeg_problem` counts the scans by walking the file's markers first.
 """
 
 from __future__ import annotations
 
+import re
 import struct
+from typing import NamedTuple
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8"
 
 # JPEG start-of-frame markers that carry the image size (not DHT 0xC4, JPG 0xC8, DAC 0xCC).
 _SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_SOS, _EOI = 0xDA, 0xD9
+
+# The most scans a JPEG upload may hold: a baseline JPEG has one, a progressive JPEG of a real
+# encoder about ten (libjpeg's default script: 10), and each scan is another pass of the
+# decoder over the whole image. libjpeg-turbo itself stops at 1000.
+MAX_JPEG_SCANS = 100
+# The most marker segments (APPn, DQT, DHT, SOF, SOS, COM, ...) of a JPEG upload: real files
+# have a few dozen (a large ICC profile or XMP packet adds one per 64 KiB); the bound keeps the
+# walk of the markers itself cheap.
+MAX_JPEG_SEGMENTS = 4096
+
+# The next marker in entropy-coded data: 0xFF followed by a byte that is neither a stuffed
+# zero nor a restart marker RST0-RST7 (0xD0-0xD7); a second 0xFF is a fill byte before one.
+_MARKER_IN_SCAN = re.compile(rb"\xff[^\x00\xd0-\xd7]")
 
 
 def image_format(data: bytes) -> str | None:
@@ -52,6 +70,72 @@ def _jpeg_size(data: bytes) -> tuple[int, int] | None:
         if length < 2:
             return None
         i += 2 + length
+    return None
+
+
+class JpegMarkers(NamedTuple):
+    """What a walk of a JPEG's markers found: scans (SOS segments) and segments of any kind."""
+
+    scans: int
+    segments: int
+
+
+def jpeg_markers(
+    data: bytes, max_scans: int = MAX_JPEG_SCANS, max_segments: int = MAX_JPEG_SEGMENTS
+) -> JpegMarkers:
+    """The scans and marker segments of the JPEG ``data`` (after its SOI marker), walked up to
+    EOI without decoding anything: each segment's length is skipped, and after each SOS
+    segment its entropy-coded data up to the next marker. The walk stops as soon as it has
+    counted more than ``max_scans`` scans or ``max_segments`` segments, and where the file is
+    truncated or malformed (what it counted so far: the decoder refuses or crops such a
+    file)."""
+    i, n = 2, len(data)
+    scans = segments = 0
+    while i + 1 < n and scans <= max_scans and segments <= max_segments:
+        if data[i] != 0xFF:
+            break  # not a marker where one must be
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker == _EOI:
+            break
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:  # markers without a length
+            i += 2
+            continue
+        if i + 4 > n:
+            break
+        (length,) = struct.unpack(">H", data[i + 2 : i + 4])
+        if length < 2:
+            break
+        segments += 1
+        i += 2 + length
+        if marker == _SOS:
+            scans += 1
+            found = _MARKER_IN_SCAN.search(data, i)
+            if found is None:
+                break  # the scan runs to the end of the file (truncated)
+            i = found.start()
+    return JpegMarkers(scans, segments)
+
+
+def jpeg_problem(data: bytes) -> str | None:
+    """Why ``data`` must not reach the decoder: a JPEG of more than :data:`MAX_JPEG_SCANS`
+    scans or :data:`MAX_JPEG_SEGMENTS` marker segments; None for any other file (PNG too)."""
+    if image_format(data) != ".jpg":
+        return None
+    found = jpeg_markers(data)
+    if found.scans > MAX_JPEG_SCANS:
+        return (
+            f"JPEG has more than {MAX_JPEG_SCANS} scans (a progressive JPEG has about 10, and "
+            "each scan is another pass of the decoder over the whole image); save it again as "
+            "a baseline or an ordinary progressive JPEG, or as PNG"
+        )
+    if found.segments > MAX_JPEG_SEGMENTS:
+        return (
+            f"JPEG has more than {MAX_JPEG_SEGMENTS} marker segments (an image has a few dozen);"
+            " save it again as an ordinary JPEG or as PNG"
+        )
     return None
 
 

@@ -12,7 +12,7 @@ from server.auth import AdminScope
 from server.deps import DbDep
 from server.pagination import PAGE_RESPONSES, PageDep, page
 from server.schemas.admin import AuditEntryOut, KeyCreate, KeyCreatedOut, KeyOut
-from server.schemas.common import ERROR_RESPONSES
+from server.schemas.common import ERROR_RESPONSES, ParamText
 from server.services import audit, keys
 
 router = APIRouter(tags=["admin"], responses=ERROR_RESPONSES, dependencies=[AdminScope])
@@ -45,7 +45,7 @@ def list_keys(
     response_model=KeyOut,
     summary="revoke a key by name or prefix (effective at its next request)",
 )
-def revoke(key_ref: Annotated[str, "name or prefix"], db: DbDep) -> KeyOut:
+def revoke(key_ref: Annotated[ParamText, "name or prefix"], db: DbDep) -> KeyOut:
     return keys.key_out(keys.revoke_key(db, key_ref))
 
 
@@ -55,10 +55,10 @@ def audit_log(
     response: Response,
     pages: PageDep,
     key_name: Annotated[
-        str | None, Query(max_length=64, description="only this key's entries")
+        ParamText | None, Query(max_length=64, description="only this key's entries")
     ] = None,
     method: Annotated[
-        str | None, Query(max_length=8, description="only this method (POST, DELETE)")
+        ParamText | None, Query(max_length=8, description="only this method (POST, DELETE)")
     ] = None,
 ) -> list[AuditEntryOut]:
     """The write requests, newest first, a page at a time: who, what, when and the status code."""

@@ -17,7 +17,7 @@ from server.deps import DbDep, FormPartsChecked, ServicesDep, read_in_thread
 from server.errors import too_large
 from server.frame_validation import FrameParts, check_frame_name
 from server.pagination import PAGE_RESPONSES, PageDep, page
-from server.schemas.common import ERROR_RESPONSES
+from server.schemas.common import ERROR_RESPONSES, ParamText
 from server.schemas.frames import ArchiveUploadOut, FrameOut, FrameUploadOut
 from server.services import frames, scenes
 from server.services.frames import TEXT_LIMIT, decode_text
@@ -48,7 +48,7 @@ async def _read(upload: UploadFile | None, field: str, limit: int) -> bytes | No
     dependencies=[FormPartsChecked],
 )
 async def upload_frame(
-    scene_ref: str,
+    scene_ref: ParamText,
     db: DbDep,
     services: ServicesDep,
     response: Response,
@@ -112,7 +112,9 @@ async def upload_frame(
 
 
 @router.get("/frames", response_model=list[FrameOut], responses=PAGE_RESPONSES)
-def list_frames(scene_ref: str, db: DbDep, response: Response, pages: PageDep) -> list[FrameOut]:
+def list_frames(
+    scene_ref: ParamText, db: DbDep, response: Response, pages: PageDep
+) -> list[FrameOut]:
     """The scene's frames in order (order key, then name), a page at a time; ``X-Total-Count``
     is the number of all its frames."""
     rows = page(db, frames.scene_frames_query(db, scene_ref), pages, response, frames.ORDER)
@@ -120,7 +122,7 @@ def list_frames(scene_ref: str, db: DbDep, response: Response, pages: PageDep) -
 
 
 @router.get("/frames/{name}", response_model=FrameOut)
-def show_frame(scene_ref: str, name: str, db: DbDep) -> FrameOut:
+def show_frame(scene_ref: ParamText, name: ParamText, db: DbDep) -> FrameOut:
     return frames.show_frame(db, scene_ref, name)
 
 
@@ -132,8 +134,8 @@ def show_frame(scene_ref: str, name: str, db: DbDep) -> FrameOut:
     },
 )
 def frame_file(
-    scene_ref: str,
-    name: str,
+    scene_ref: ParamText,
+    name: ParamText,
     part: Literal["color", "depth", "labels"],
     db: DbDep,
     services: ServicesDep,
@@ -154,7 +156,7 @@ def frame_file(
     dependencies=[FormPartsChecked],
 )
 async def upload_archive(
-    scene_ref: str,
+    scene_ref: ParamText,
     db: DbDep,
     services: ServicesDep,
     archive: Annotated[

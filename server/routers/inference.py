@@ -20,7 +20,7 @@ from server import capabilities
 from server.auth import DeviceScope
 from server.deps import DbDep, FormPartsChecked, ServicesDep, read_in_thread
 from server.errors import invalid, not_available, too_large
-from server.image_headers import image_format, image_size
+from server.image_headers import image_format, image_size, jpeg_problem
 from server.schemas.common import ERROR_RESPONSES
 from server.services import models
 
@@ -80,6 +80,8 @@ async def predict(
     model_cache = request.app.state.model_cache
 
     def label() -> bytes:
+        if (problem := jpeg_problem(data)) is not None:  # a walk of the whole file: off the loop
+            raise invalid("image", problem)
         with tempfile.TemporaryDirectory(prefix="csa-predict-") as d:
             path = Path(d) / f"image{fmt}"
             path.write_bytes(data)

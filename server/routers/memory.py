@@ -7,7 +7,7 @@ from fastapi import APIRouter, Response
 
 from server.auth import OperatorScope
 from server.deps import DbDep, ServicesDep
-from server.schemas.common import ERROR_RESPONSES
+from server.schemas.common import ERROR_RESPONSES, ParamText
 from server.schemas.memory import MemoryBankOut, NerfOut
 from server.services import nerfs
 
@@ -29,7 +29,7 @@ def memory_bank(db: DbDep, include_inactive: bool = False) -> MemoryBankOut:
 
 
 @router.get("/{scene_ref}", response_model=NerfOut)
-def scene_nerf(scene_ref: str, db: DbDep) -> NerfOut:
+def scene_nerf(scene_ref: ParamText, db: DbDep) -> NerfOut:
     return nerfs.scene_nerf(db, scene_ref)
 
 
@@ -43,7 +43,7 @@ def scene_nerf(scene_ref: str, db: DbDep) -> NerfOut:
     },
     response_class=Response,
 )
-def download_nerf(scene_ref: str, db: DbDep, services: ServicesDep) -> Response:
+def download_nerf(scene_ref: ParamText, db: DbDep, services: ServicesDep) -> Response:
     body, filename = nerfs.nerf_zip(db, services.store, scene_ref)
     return Response(
         body,

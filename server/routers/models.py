@@ -17,7 +17,7 @@ from server.auth import OperatorScope, PrincipalDep
 from server.deps import DbDep, FormPartsChecked, ServicesDep, read_in_thread
 from server.errors import not_available, too_large
 from server.pagination import PAGE_RESPONSES, PageDep, page
-from server.schemas.common import ERROR_RESPONSES, Name
+from server.schemas.common import ERROR_RESPONSES, Name, ParamText
 from server.schemas.models import ModelOut
 from server.services import models
 
@@ -106,7 +106,7 @@ async def register_model(
 @router.get(
     "/{model_ref}", response_model=ModelOut, summary="a model version by id, name or 'current'"
 )
-def show_model(model_ref: str, db: DbDep) -> ModelOut:
+def show_model(model_ref: ParamText, db: DbDep) -> ModelOut:
     return models.show_model(db, model_ref)
 
 
@@ -115,7 +115,7 @@ def show_model(model_ref: str, db: DbDep) -> ModelOut:
     response_model=ModelOut,
     summary="make this version the one inference and new jobs use",
 )
-def make_current(model_ref: str, db: DbDep) -> ModelOut:
+def make_current(model_ref: ParamText, db: DbDep) -> ModelOut:
     return models.make_current(db, model_ref)
 
 
@@ -129,7 +129,7 @@ def make_current(model_ref: str, db: DbDep) -> ModelOut:
         }
     },
 )
-def download_model(model_ref: str, db: DbDep, services: ServicesDep) -> FileResponse:
+def download_model(model_ref: ParamText, db: DbDep, services: ServicesDep) -> FileResponse:
     checkpoint = models.checkpoint_of(db, model_ref)
     sha = checkpoint.sha256
     return FileResponse(

@@ -16,7 +16,7 @@ from server.auth import OperatorScope
 from server.deps import DbDep, ServicesDep, read_in_thread
 from server.errors import not_available
 from server.nerf_cache import NerfCache
-from server.schemas.common import ERROR_RESPONSES, ErrorBody
+from server.schemas.common import ERROR_RESPONSES, ErrorBody, ParamText
 from server.schemas.rendering import RenderOut, RenderRequest
 from server.services import nerfs
 
@@ -45,7 +45,7 @@ def _png(img: np.ndarray) -> str:
     summary="render a view of the scene's NeRF",
 )
 async def render(
-    scene_ref: str, body: RenderRequest, request: Request, db: DbDep, services: ServicesDep
+    scene_ref: ParamText, body: RenderRequest, request: Request, db: DbDep, services: ServicesDep
 ) -> RenderOut:
     reason = capabilities.missing_reason("nerf")
     if reason is not None:

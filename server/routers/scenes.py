@@ -7,7 +7,7 @@ from fastapi import APIRouter, Response, status
 from server.auth import DeviceScope, OperatorScope, PrincipalDep, SceneAccess
 from server.deps import DbDep, ServicesDep
 from server.pagination import PAGE_RESPONSES, PageDep, page
-from server.schemas.common import ERROR_RESPONSES
+from server.schemas.common import ERROR_RESPONSES, ParamText
 from server.schemas.scenes import SceneCreate, SceneOut
 from server.services import scenes
 
@@ -38,7 +38,7 @@ def list_scenes(
 
 
 @router.get("/{scene_ref}", response_model=SceneOut, dependencies=[SceneAccess])
-def show_scene(scene_ref: str, db: DbDep) -> SceneOut:
+def show_scene(scene_ref: ParamText, db: DbDep) -> SceneOut:
     return scenes.show_scene(db, scene_ref)
 
 
@@ -48,7 +48,7 @@ def show_scene(scene_ref: str, db: DbDep) -> SceneOut:
     responses={409: ERROR_RESPONSES[422]},
     dependencies=[OperatorScope],
 )
-def delete_scene(scene_ref: str, db: DbDep, services: ServicesDep) -> Response:
+def delete_scene(scene_ref: ParamText, db: DbDep, services: ServicesDep) -> Response:
     """Delete a scene, its frames and its NeRFs; refused while a job for it is queued or running."""
     scenes.delete_scene(db, services.store, scene_ref)
     return Response(status_code=status.HTTP_204_NO_CONTENT)

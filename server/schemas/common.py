@@ -51,6 +51,20 @@ def _as_utc(value: dt.datetime) -> dt.datetime:
 # Free text: anything but NUL characters, which PostgreSQL's text columns cannot hold.
 PlainText = Annotated[str, StringConstraints(pattern=r"^[^\x00]*$")]
 
+NUL_PROBLEM = "must not contain a NUL character (%00)"
+
+
+def _without_nul(value: str) -> str:
+    if "\x00" in value:
+        raise PydanticCustomError("nul_character", NUL_PROBLEM)
+    return value
+
+
+# A name, reference or filter in a path or query string: anything but a NUL character, which
+# no row holds (and PostgreSQL's text cannot even be compared with), refused with a 422 naming
+# the parameter on every database alike.
+ParamText = Annotated[str, AfterValidator(_without_nul)]
+
 # The database keeps naive UTC; answers carry the zone (RFC 3339).
 Timestamp = Annotated[dt.datetime, AfterValidator(_as_utc)]
 

@@ -6,6 +6,8 @@ What a key is (its form, scopes, names, lifetimes) and how a request's key is ch
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from sqlalchemy import Select, or_, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -46,13 +48,23 @@ def _name_taken(name: str) -> APIError:
     return conflict(message, field="name")
 
 
+# The names errors give the parameters of :func:`create_key`: the request body's fields.
+KEY_FIELDS = {"name": "name", "scope": "scope", "expires_in": "expires_in"}
+
+
 def create_key(
-    db: Session, name: str, scope: str, expires_in: str | None = None
+    db: Session,
+    name: str,
+    scope: str,
+    expires_in: str | None = None,
+    fields: Mapping[str, str] = KEY_FIELDS,
 ) -> tuple[ApiKey, str]:
-    """A new key row and the key itself (shown once: only its hash is stored)."""
-    check_name(name)
-    scope = check_scope(scope)
-    expires_at = utcnow() + parse_duration(expires_in, "expires_in") if expires_in else None
+    """A new key row and the key itself (shown once: only its hash is stored). An invalid
+    parameter is a 422 naming it as ``fields`` does (``csa keys create`` names its options)."""
+    check_name(name, fields["name"])
+    scope = check_scope(scope, fields["scope"])
+    expires = parse_duration(expires_in, fields["expires_in"]) if expires_in else None
+    expires_at = utcnow() + expires if expires is not None else None
     if db.scalar(select(ApiKey.id).where(ApiKey.name == name)) is not None:
         raise _name_taken(name)
     for _ in range(3):  # a prefix collision (48 random bits) is retried with a new secret

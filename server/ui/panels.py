@@ -30,7 +30,7 @@ from server import capabilities
 from server.artifacts import ArtifactStore
 from server.db.models import Frame, Scene
 from server.errors import invalid, not_available, not_found
-from server.image_headers import image_format, image_size
+from server.image_headers import image_format, image_size, jpeg_problem
 from server.model_cache import ModelCache
 from server.nerf_cache import NerfCache
 from server.services.models import checkpoint_of
@@ -220,6 +220,8 @@ def predict_preview(
         raise invalid(
             "image", f"image is {size[0]}x{size[1]}, more than the limit of {max_pixels} pixels"
         )
+    if (problem := jpeg_problem(data)) is not None:
+        raise invalid("image", problem)
     decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if decoded is None:
         raise invalid("image", "cannot decode image (corrupt PNG or JPEG file)")

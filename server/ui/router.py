@@ -42,6 +42,7 @@ from server.deps import DbDep, ServicesDep
 from server.errors import APIError, not_found, too_large
 from server.jobs.queue import TERMINAL
 from server.keys import ADMIN, DEVICE, OPERATOR, Principal, Scope
+from server.schemas.common import ParamText
 from server.schemas.jobs import JobId, JobOut
 from server.services import audit, frames, jobs, models, nerfs, scenes
 from server.ui import page_data, panels
@@ -320,10 +321,10 @@ def scenes_page(
 @router.get("/scenes/{scene_ref}")
 def scene_page(
     request: Request,
-    scene_ref: str,
+    scene_ref: ParamText,
     session: PageSession,
     db: DbDep,
-    frame: Annotated[str | None, Query(max_length=64)] = None,
+    frame: Annotated[ParamText | None, Query(max_length=64)] = None,
     page: Annotated[int, Query(ge=0, le=100_000)] = 0,
 ) -> Response:
     try:
@@ -423,7 +424,7 @@ def continual_page(
     request: Request,
     session: PageSession,
     db: DbDep,
-    lineage: Annotated[str | None, Query(max_length=128)] = None,
+    lineage: Annotated[ParamText | None, Query(max_length=128)] = None,
     split: Annotated[Literal["val", "train", "all"], Query()] = "val",
 ) -> Response:
     names = [lin.name for lin in page_data.lineages(db)]
@@ -486,7 +487,7 @@ def audit_page(
     request: Request,
     session: PageSession,
     db: DbDep,
-    key_name: Annotated[str | None, Query(max_length=64)] = None,
+    key_name: Annotated[ParamText | None, Query(max_length=64)] = None,
     page: Annotated[int, Query(ge=0, le=100_000)] = 0,
 ) -> Response:
     """The audit log, newest first, for admin keys (the route /api/v1/audit answers the same)."""
@@ -520,8 +521,8 @@ def _not_modified(request: Request, etag: str) -> bool:
 )
 def frame_panel(
     request: Request,
-    scene_ref: str,
-    name: str,
+    scene_ref: ParamText,
+    name: ParamText,
     panel: panels.Panel,
     _: ApiSession,
     db: DbDep,
@@ -549,7 +550,7 @@ def frame_panel(
 def continual_plot(
     _: ApiSession,
     db: DbDep,
-    lineage: Annotated[str | None, Query(max_length=128)] = None,
+    lineage: Annotated[ParamText | None, Query(max_length=128)] = None,
     split: Annotated[Literal["val", "train", "all"], Query()] = "val",
 ) -> Response:
     metrics = page_data.continual_metrics(db, lineage or None, split)

@@ -3,9 +3,10 @@ entries do not map to one file each, corrupt compressed streams, intrinsic matri
 pinhole matrices, a second depth camera sneaked into a scene, forged model cards (non-finite
 metrics too), uploads racing a scene's deletion, job parameters that would make a job read a
 scene twice or at sizes no frame has, uploads that would hold the event loop, invented HTTP
-methods, non-ASCII CSRF tokens, bodies without a length, labels sent as JPEG and model cards
-holding numbers or text no database or answer can hold. Every answer is a 4xx whose ``field``
-names the culprit, nothing is stored, and no error message shows a path of the server.
+methods, non-ASCII CSRF tokens, bodies without a length, labels sent as JPEG, progressive JPEGs
+of thousands of scans and model cards holding numbers or text no database or answer can hold.
+Every answer is a 4xx whose ``field`` names the culprit, nothing is stored, and no error message
+shows a path of the server.
 
 SQLite only, no worker (queued jobs never run): the rules live in the request path.
 """
@@ -29,7 +30,9 @@ import numpy as np
 import pytest
 
 from csa_core.errors import CSAInputError
+from server.image_headers import MAX_JPEG_SCANS
 from tests.server.conftest import API_KEY, LiveServer
+from tests.server.test_image_headers import with_extra_scans
 
 W, H = 32, 24
 K = "30 0 15.5\n0 31 11.5\n0 0 1\n"
@@ -1100,6 +1103,67 @@ def test_labels_sent_as_jpeg_are_refused(http: httpx.Client) -> None:
     refused(r, 422, "archive:label-nyu40/0.png", "must be a PNG file, not a JPEG")
     assert frame_count(http, scene) == 0
     assert upload_frame(http, scene, "0", labels=png(region)).status_code == 201
+
+
+# --- progressive JPEGs of thousands of scans ------------------------------------------------
+
+
+def progressive_jpg(seed: int = 0) -> bytes:
+    img = np.random.default_rng(seed).integers(0, 256, (H, W, 3), dtype=np.uint8)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])
+    assert ok
+    return buf.tobytes()
+
+
+def test_jpegs_of_too_many_scans_are_refused_before_decoding(
+    http: httpx.Client, monkeypatch
+) -> None:
+    """A small progressive JPEG of thousands of scans makes the decoder go over the whole image
+    once per scan. Its markers are counted first: more than 100 scans is a 422 naming the part
+    (by frame and in an archive), the decoder never sees the file and nothing is stored; an
+    ordinary progressive JPEG is still stored."""
+    from csa_core.data import image_files
+
+    decoded: list[str] = []
+    real_imread = image_files._imread
+
+    def imread(path: Path, flags: int):
+        decoded.append(path.suffix)
+        return real_imread(path, flags)
+
+    monkeypatch.setattr(image_files, "_imread", imread)
+    bomb = with_extra_scans(progressive_jpg(), 2000)
+    scene = new_scene(http)
+    r = upload_frame(http, scene, "0", color=bomb)
+    refused(r, 422, "color", f"more than {MAX_JPEG_SCANS} scans")
+    archive = tar_of(
+        [("color/0.jpg", bomb), *[(k, v) for k, v in SCENE.items() if not k.startswith("color/")]]
+    )
+    r = upload_archive(http, scene, archive)
+    refused(r, 422, "archive:color/0.jpg", f"more than {MAX_JPEG_SCANS} scans")
+    assert frame_count(http, scene) == 0
+    assert ".jpg" not in decoded
+    assert upload_frame(http, scene, "0", color=progressive_jpg()).status_code == 201
+    assert ".jpg" in decoded
+
+
+def test_predictions_refuse_jpegs_of_too_many_scans(http: httpx.Client) -> None:
+    from server import capabilities
+
+    if not capabilities.available("seg"):
+        pytest.skip("csa_core.seg is not available in this build")
+    model = _registered_model(http)
+    bomb = with_extra_scans(progressive_jpg(), 2000)
+    r = http.post(
+        "/api/v1/predict", files={"image": ("i.jpg", bomb, "image/jpeg")}, data={"model": model}
+    )
+    refused(r, 422, "image", f"more than {MAX_JPEG_SCANS} scans")
+    r = http.post(
+        "/api/v1/predict",
+        files={"image": ("i.jpg", progressive_jpg(), "image/jpeg")},
+        data={"model": model},
+    )
+    assert r.status_code == 200, r.text[:300]
 
 
 # --- blobs left behind by a transaction that failed ----------------------------------------

@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import quote
 
 import cv2
 import httpx
@@ -19,9 +20,11 @@ import pytest
 from sqlalchemy import select, text, update
 
 from csa_core.cli.main import main as csa_main
+from server.audit import record
 from server.db.models import ApiKey, AuditEntry, Scene
 from server.db.session import session_scope
-from server.keys import SCOPES, hash_secret
+from server.keys import SCOPES, Principal, hash_secret
+from server.schemas.common import NUL_PROBLEM
 from tests.server.conftest import (
     API_KEY,
     LiveServer,
@@ -401,6 +404,137 @@ def test_the_audit_log_records_writes(keyed: Keyed) -> None:
     )
 
 
+def _string_parameters(live: LiveServer) -> list[tuple[str, str, str, str]]:
+    """(method, path, "path" or "query", name) of every text parameter in the OpenAPI document."""
+    spec = httpx.get(f"{live.url}/openapi.json", timeout=30).json()
+    return [
+        (method.upper(), path, p["in"], p["name"])
+        for path, ops in spec["paths"].items()
+        for method, op in ops.items()
+        for p in op.get("parameters", [])
+        if any(s.get("type") == "string" for s in p["schema"].get("anyOf", [p["schema"]]))
+    ]
+
+
+# Parameters whose only rule is "no NUL character" (the others have a pattern, a set of values
+# or, for ``after``, the cursors' own check, and are refused naming them all the same).
+PLAIN_TEXT = {"scene_ref", "name", "model_ref", "key_ref", "key_name", "method"}
+
+
+def test_nul_characters_in_path_and_query_parameters_are_a_422_naming_them(
+    keyed: Keyed,
+) -> None:
+    """A NUL character (``%00``) in a reference or a filter (``/keys/%00/revoke``,
+    ``/audit?key_name=%00``) reached the database: PostgreSQL refused it and the answer was a
+    422 naming no field, and SQLite answered an empty list. Every text parameter of every
+    route, in the path or the query, the dashboard's too, is refused with a 422 naming it."""
+    params = _string_parameters(keyed.live)
+    assert {(m, p, n) for m, p, _, n in params} >= {
+        ("POST", "/api/v1/keys/{key_ref}/revoke", "key_ref"),
+        ("GET", "/api/v1/audit", "key_name"),
+        ("GET", "/api/v1/audit", "method"),
+        ("GET", "/api/v1/scenes/{scene_ref}/frames", "after"),
+        ("GET", "/api/v1/scenes/{scene_ref}/frames/{name}", "name"),
+    }
+    placeholders = {
+        "scene_ref": "dev-scene",
+        "name": "0",
+        "part": "color",
+        "model_ref": "no-such-model",
+        "key_ref": "no-such-key",
+    }
+    nul = "a\x00b"
+    with keyed.http("admin-settings") as c:
+        for method, path, where, name in params:
+            url = path.format(
+                **{**placeholders, name: quote(nul)} if where == "path" else placeholders
+            )
+            r = c.request(method, url, params={name: nul} if where == "query" else None)
+            assert r.status_code == 422, (method, path, name, r.status_code, r.text[:300])
+            error = r.json()["error"]
+            assert error["field"] == name and error["message"].startswith(f"{name}: "), error
+            if name in PLAIN_TEXT:
+                assert error["message"].startswith(f"{name}: {NUL_PROBLEM}"), error
+    with keyed.http("device") as c:  # a device key's scene is looked up before the route runs
+        for method in ("GET", "POST"):
+            r = c.request(method, "/api/v1/scenes/a%00b/frames")
+            assert r.status_code == 422 and r.json()["error"]["field"] == "scene_ref", r.text
+    origin = {"Origin": keyed.live.url}
+    with httpx.Client(base_url=keyed.live.url, timeout=30, follow_redirects=False) as ui:
+        r = ui.post("/ui/login", data={"api_key": keyed.keys["admin"]}, headers=origin)
+        assert r.status_code == 303, r.text[:300]
+        for url, name in (
+            ("/ui/audit?key_name=%00", "key_name"),
+            ("/ui/continual?lineage=%00", "lineage"),
+            ("/ui/scenes/a%00b", "scene_ref"),
+            ("/ui/scenes/dev-scene?frame=%00", "frame"),
+            ("/ui/img/scenes/dev-scene/frames/a%00b/truth.png", "name"),
+        ):
+            r = ui.get(url)
+            assert r.status_code == 422, (url, r.status_code, r.text[:300])
+            assert r.json()["error"] == {
+                "code": "invalid",
+                "message": f"{name}: {NUL_PROBLEM}",
+                "field": name,
+            }
+
+
+def test_writes_to_paths_holding_a_nul_character_are_audited(keyed: Keyed) -> None:
+    """A write whose path holds ``%00`` lost its audit entry on PostgreSQL, whose text cannot
+    hold a NUL character (the insert failed after the answer), and kept the NUL on SQLite. The
+    entry is written on both, with the four characters ``\\x00`` in its place; the answer is
+    the 422 naming the parameter (or the 403 of a scope), never a 500."""
+    with keyed.http("device") as c:
+        r = c.post("/api/v1/scenes/robot%00room/frames")
+        assert r.status_code == 422 and r.json()["error"]["field"] == "scene_ref", r.text
+        assert c.delete("/api/v1/scenes/robot%00room").status_code == 403  # needs operator
+    with keyed.http(API_KEY) as admin:
+        r = admin.post("/api/v1/keys/%00/revoke")
+        assert r.status_code == 422 and r.json()["error"]["field"] == "key_ref", r.text
+        deleted, posted = admin.get(
+            "/api/v1/audit", params={"key_name": "walk-device", "limit": 2}
+        ).json()
+        (revoked,) = admin.get(
+            "/api/v1/audit", params={"key_name": "CSA_API_KEYS#1", "limit": 1}
+        ).json()
+    assert (posted["route"], posted["path"], posted["ids"], posted["status"]) == (
+        "/api/v1/scenes/{scene_ref}/frames",
+        "/api/v1/scenes/robot\\x00room/frames",
+        {"scene_ref": "robot\\x00room"},
+        422,
+    )
+    assert (deleted["method"], deleted["path"], deleted["status"]) == (
+        "DELETE",
+        "/api/v1/scenes/robot\\x00room",
+        403,
+    )
+    assert (revoked["path"], revoked["ids"], revoked["status"]) == (
+        "/api/v1/keys/\\x00/revoke",
+        {"key_ref": "\\x00"},
+        422,
+    )
+    # Every text the writer stores, a lone surrogate and an over-long path too.
+    record(
+        keyed.live.services.sessions,
+        Principal("nul\x00key", "dev\x00ice"),
+        "PO\x00ST",
+        "/api/v1/r\x00/{x}",
+        "/api/v1/r\x00\udcff/" + "p" * 2000,
+        {"x\x00": "v\x00\udcff", "created_id": 7},
+        201,
+    )
+    with keyed.live.services.sessions() as db:
+        entry = db.scalar(select(AuditEntry).where(AuditEntry.key_name == "nul\\x00key"))
+    assert entry is not None
+    assert (entry.scope, entry.method, entry.route) == (
+        "dev\\x00ice",
+        "PO\\x00ST",
+        "/api/v1/r\\x00/{x}",
+    )
+    assert entry.path.startswith("/api/v1/r\\x00\\udcff/ppp") and len(entry.path) == 1024
+    assert entry.ids == {"x\\x00": "v\\x00\\udcff", "created_id": 7}
+
+
 def _database_options(keyed: Keyed) -> list[str]:
     """``csa keys`` options that reach the live server's database."""
     settings = keyed.live.settings
@@ -460,6 +594,42 @@ def test_csa_keys_commands(keyed: Keyed, capsys) -> None:
     assert code == 1 and "not a duration" in err
     code, _, err = _cli(capsys, "keys", *where, "revoke", "nobody")
     assert code == 1 and "not found" in err
+
+
+def test_csa_keys_create_names_its_options_in_errors(keyed: Keyed, capsys) -> None:
+    """``csa keys create --expires 3x`` said ``expires_in: '3x' is not a duration``, the name
+    of the REST body's field, which the command has no option for. Its errors name the option
+    and what is wrong; the route still names its body's field."""
+    where = _database_options(keyed)
+    for expires, problem in (
+        ("3x", "'3x' is not a duration (a positive number and a unit m, h, d or w: 30d, 12h)"),
+        ("0d", "'0d' is not a duration"),
+        ("999999w", "'999999w' is more than 36500 days"),
+    ):
+        code, out, err = _cli(
+            capsys,
+            "keys",
+            *where,
+            "create",
+            "--scope",
+            "device",
+            "--name",
+            "robot-10",
+            "--expires",
+            expires,
+        )
+        assert code == 1 and out == ""
+        assert f"csa keys create: --expires: {problem}" in err and "expires_in" not in err
+    code, _, err = _cli(capsys, "keys", *where, "create", "--scope", "device", "--name", "9 lives")
+    assert code == 1 and "csa keys create: --name: '9 lives' is not a key name" in err
+    with keyed.http(API_KEY) as admin:
+        assert "robot-10" not in {k["name"] for k in admin.get("/api/v1/keys").json()}
+        r = admin.post(
+            "/api/v1/keys", json={"name": "robot-10", "scope": "device", "expires_in": "3x"}
+        )
+    assert r.status_code == 422
+    assert r.json()["error"]["field"] == "expires_in"
+    assert r.json()["error"]["message"].startswith("expires_in: '3x' is not a duration")
 
 
 def test_the_dashboard_signs_in_by_key_and_shows_what_the_scope_allows(keyed: Keyed) -> None:
