@@ -84,6 +84,7 @@ present (train / val views); ``--json`` always holds them.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import platform
 import resource
@@ -495,6 +496,26 @@ RENDERS = {  # --renders: name -> (row suffix, render options of the fitted mode
 }
 
 
+def render_options(render: str, config: Any) -> tuple[str, list[tuple[str | None, str, Any]], bool]:
+    """Row suffix, render options and whether the views' depth is used, of ``--renders`` entry
+    ``render``: a name of ``RENDERS``, or config overrides joined by ``+``
+    (``sampler.render_band_samples=12+sampler.render_surface_label_weight=0.5``), parsed as
+    ``--set`` parses them (on a copy of ``config``) and rendered with the views' depth."""
+    if render in RENDERS:
+        return RENDERS[render]
+    items = [item for item in render.split("+") if item]
+    parsed = apply_overrides(copy.deepcopy(config), items, flag="--renders")
+    options = []
+    for item in items:
+        key = item.partition("=")[0].strip()
+        section, _, name = key.rpartition(".")
+        if "." in section:
+            raise CSAInputError(f"--renders {item}", "render overrides take section.key or key")
+        value = getattr(parsed if not section else getattr(parsed, section), name)
+        options.append((section or None, name, value))
+    return " ".join(items), options, True
+
+
 def render_row(
     scene: Scene, fitted: dict[str, Any], fit: dict[str, Any], render: str
 ) -> dict[str, Any]:
@@ -503,7 +524,7 @@ def render_row(
     views as novel views: from their poses alone, colour and labels, as ``csa nerf render
     --views novel`` does; they score val mIoU and PSNR only."""
     nerf = fitted["nerf"]
-    suffix, options, with_depth = RENDERS[render]
+    suffix, options, with_depth = render_options(render, nerf.config)
     saved = []
     for section, key, value in options:
         target = nerf.config if section is None else getattr(nerf.config, section)
@@ -779,7 +800,8 @@ def main() -> None:
     p.add_argument(
         "--renders",
         default="",
-        help=f"extra label renders of each NeRF fit, comma-separated: {', '.join(RENDERS)}",
+        help=f"extra label renders of each NeRF fit, comma-separated: {', '.join(RENDERS)}, "
+        "or config overrides joined by + (sampler.render_band_samples=12)",
     )
     p.add_argument("--voxel", type=float, default=0.05, help="voxel size of the map, metres")
     p.add_argument("--threads", type=int, default=2)
@@ -798,9 +820,12 @@ def main() -> None:
     if bad:
         raise SystemExit(f"--variants: unknown {', '.join(sorted(bad))} (clean, hard, outliers, flying)")
     args.renders = [r for r in args.renders.split(",") if r]
-    bad = set(args.renders) - set(RENDERS)
+    bad = {r for r in args.renders if r not in RENDERS and "=" not in r}
     if bad:
-        raise SystemExit(f"--renders: unknown {', '.join(sorted(bad))} ({', '.join(RENDERS)})")
+        raise SystemExit(
+            f"--renders: unknown {', '.join(sorted(bad))} ({', '.join(RENDERS)}, or "
+            "section.key=value overrides joined by +)"
+        )
     from csa_core.device import resolve_device
 
     torch.set_num_threads(args.threads)

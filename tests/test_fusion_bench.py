@@ -65,3 +65,32 @@ def test_the_nerf_is_held_to_the_better_read_back_per_split_and_per_class():
     big = _nerf(0.86, 0.83, (0.77, 0.95), (0.74, 0.95), mb=5.5)
     assert bench.target_rows([*MAPS, big])[0]["targets"] == "missed"
     assert "| missed |" in bench.targets_table([*MAPS, big])
+
+
+def test_renders_take_named_options_and_config_overrides():
+    """``--renders``: a name of ``RENDERS``, or ``section.key=value`` overrides joined by
+    ``+``, parsed by the config's own types and checked as ``--set`` checks them."""
+    import pytest
+
+    from csa_core.errors import CSAInputError
+    from csa_core.nerf.config import preset
+
+    bench = _bench()
+    config = preset("fast")
+    assert bench.render_options("labels-at-depth", config) == bench.RENDERS["labels-at-depth"]
+    suffix, options, with_depth = bench.render_options(
+        "sampler.render_band_samples=12+sampler.render_surface_label_weight=0.5", config
+    )
+    assert options == [
+        ("sampler", "render_band_samples", 12),
+        ("sampler", "render_surface_label_weight", 0.5),
+    ]
+    assert with_depth and "render_band_samples=12" in suffix
+    assert config.sampler.render_band_samples == 6  # the fitted model's config is untouched
+    assert bench.render_options("render_unseen_unknown=true", config)[1] == [
+        (None, "render_unseen_unknown", True)
+    ]
+    with pytest.raises(CSAInputError, match="render_band_sample"):
+        bench.render_options("sampler.render_band_sample=12", config)
+    with pytest.raises(CSAInputError, match="render_surface_label_weight"):
+        bench.render_options("sampler.render_surface_label_weight=2", config)

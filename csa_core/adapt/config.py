@@ -494,14 +494,17 @@ def cpu() -> AdaptConfig:
                 "optim.final_lr_fraction=1.0",
                 # The field the continual results were measured with (benchmarks/results/
                 # continual.md), kept when the ``fast`` preset moved to a coarser finest level,
-                # 16 semantic levels, the surface term, Semantic-NeRF's semantic loss and
-                # unseen surfaces left unknown for label fusion.
+                # 16 semantic levels, the surface term, Semantic-NeRF's semantic loss, unseen
+                # surfaces left unknown and labels read at the measured surface for label
+                # fusion.
                 "field.encoding.finest_resolution=1024",
                 "field.semantic_grid_levels=12",
                 "loss.semantic_surface=0",
                 "loss.semantic_form=paper",
                 "render_unseen_unknown=false",
                 "observed_resolution=0",
+                "sampler.render_band_label_behind=none",
+                "sampler.render_surface_label_weight=0",
             ),
         ),
         seg=SegBudget(lr=2e-5, epochs=4, augment=None),
@@ -533,6 +536,8 @@ def tiny() -> AdaptConfig:
                 "loss.semantic_form=paper",
                 "render_unseen_unknown=false",
                 "observed_resolution=0",
+                "sampler.render_band_label_behind=none",
+                "sampler.render_surface_label_weight=0",
             ),
         ),
         seg=SegBudget(lr=5e-4, epochs=2),

@@ -135,6 +135,14 @@ class SamplerConfig:
     # times the band's half-width (labels only; colour, depth and opacity keep the plain
     # weights). 0 = the plain weights, as the paper.
     render_band_label_sigma: float = 0.0
+    # Ours: the class distribution of a ray with measured depth mixes in the semantic head's
+    # distribution at the measured surface point with this weight (0 = the band's composite
+    # alone, as the paper; 1 = the surface point alone).
+    render_surface_label_weight: float = 0.0
+    # Ours, off by default (None): the class distribution of a ray with measured depth reads
+    # only its band samples at most this many metres behind the measured depth (a surface's
+    # inside, which no view sees, is left out; colour, depth and opacity keep every sample).
+    render_band_label_behind: float | None = None
     uniform_samples: int = 256  # docs/method.md "Reference numbers": 256 uniform samples per ray
     importance_samples: int = (
         256  # docs/method.md "Reference numbers": 256 importance samples per ray
@@ -177,6 +185,16 @@ class SamplerConfig:
                 "sampler.render_band_label_sigma must be >= 0 (0 = off), got "
                 f"{self.render_band_label_sigma}"
             )
+        if self.render_band_label_behind is not None and not self.render_band_label_behind >= 0:
+            raise ValueError(
+                "sampler.render_band_label_behind must be >= 0 metres (or none), got "
+                f"{self.render_band_label_behind}"
+            )
+        if not 0 <= self.render_surface_label_weight <= 1:
+            raise ValueError(
+                "sampler.render_surface_label_weight must be in [0, 1], got "
+                f"{self.render_surface_label_weight}"
+            )
         for name in ("render_early_stop", "render_min_weight"):
             if not 0 <= getattr(self, name) < 1:
                 raise ValueError(f"sampler.{name} must be in [0, 1), got {getattr(self, name)}")
@@ -216,6 +234,14 @@ class LossConfig:
     # trains the head where the composited term cannot (a band without weight: a thin part the
     # field renders faintly) and leaves the rest to the composited term.
     semantic_surface_faint_only: bool = False
+    # Ours (0 = off): in the semantic-head steps, this weight times each ray's cross-entropy of
+    # its label under every band sample's own class distribution, averaged with the samples'
+    # normalised rendering weights. The composited terms let the head hold one class at the
+    # front of a surface's density and another behind it, so that rays crossing it at
+    # different angles render different classes: it learns which views said what, where the
+    # voxel map keeps the majority (benchmarks/results/fusion.md "Labels that depend on the
+    # view").
+    semantic_band_consistency: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.semantic_surface_faint_only, bool):
@@ -397,6 +423,12 @@ def _fast() -> NerfConfig:
             # steps keep the fit's 8 (benchmarks/results/speed.md, "Fewer band samples and one
             # corner layout").
             render_band_samples=6,
+            # Labels of a view with depth from the band no further than 5 cm behind the
+            # measured surface, a quarter of them from the semantic head at that surface point:
+            # the head held classes behind surfaces that only some views' rays reach
+            # (benchmarks/results/fusion.md "Labels that depend on the view").
+            render_band_label_behind=0.05,
+            render_surface_label_weight=0.25,
             # Views without depth march twice the grid's step, stop at transmittance 1/100 and
             # drop samples of weight below 1/1000: within 0.1 mIoU and 0.1 dB of the march at
             # the grid's step, in under half its time, 0.64-0.74 s per novel view on three

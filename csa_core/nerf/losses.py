@@ -60,6 +60,33 @@ def semantic_cross_entropy(
     return _mean(ce, w)
 
 
+def band_consistency_loss(
+    logits: Tensor,
+    weights: Tensor,
+    samples: RaySamples,
+    labels: Tensor,
+    ray_weight: Tensor | None = None,
+) -> Tensor:
+    """``LossConfig.semantic_band_consistency``: each ray's cross-entropy of its NYU40 id
+    ``labels`` (R,) under every sample's own class distribution (``logits`` (S, C), channel
+    ``k`` is id ``k + 1``), averaged with the samples' rendering ``weights`` (S,) normalised
+    over the ray; then the (``ray_weight``-weighted) mean over the rays with a label and any
+    weight. Unlike the composited terms, no sample can leave a label to another sample of the
+    ray: every sample that carries weight is asked for the ray's label."""
+    ri = samples.ray_indices
+    known = labels > 0
+    total = accumulate_along_rays(weights, None, samples)[:, 0]
+    rays = known & (total > 0)
+    if not bool(rays.any()):
+        return logits.sum() * 0.0
+    share = weights / total[ri].clamp_min(_LOG_EPS)
+    target = (labels.long() - 1).clamp_min(0)[ri]
+    ce = torch.nn.functional.cross_entropy(logits, target, reduction="none")
+    per_ray = accumulate_along_rays(share * ce, None, samples)[:, 0]
+    w = None if ray_weight is None else ray_weight[rays]
+    return _mean(per_ray[rays], w)
+
+
 NEAR_DEPTH = 0.3  # metres: ``near_view_weight`` stops growing below this depth
 
 
@@ -112,6 +139,9 @@ def total_loss(
         else:
             terms["semantic"] = semantic_loss(out["semantics"], batch["labels"], sw)
         total = total + cfg.semantic * terms["semantic"]
+    if "band_consistency" in out:  # weighed against the semantic term
+        terms["band_consistency"] = out["band_consistency"]
+        total = total + cfg.semantic * cfg.semantic_band_consistency * terms["band_consistency"]
     if cfg.free_space > 0 and "free_space" in out:
         terms["free_space"] = out["free_space"]
         total = total + cfg.free_space * terms["free_space"]

@@ -18,7 +18,7 @@ from csa_core.nerf.appearance import FrameAppearance
 from csa_core.nerf.config import NerfConfig
 from csa_core.nerf.field import SemanticField
 from csa_core.nerf.hash_encoding import INFERENCE_BLOCK
-from csa_core.nerf.losses import free_space_loss, total_loss
+from csa_core.nerf.losses import band_consistency_loss, free_space_loss, total_loss
 from csa_core.nerf.normalization import SceneBox
 from csa_core.nerf.rendering import (
     RaySamples,
@@ -249,6 +249,8 @@ class SemanticNerf(nn.Module):
             )
             if composited is not None:
                 result["semantic_logits"] = composited
+            if self.config.loss.semantic_band_consistency > 0:
+                result["sample_logits"] = out["semantic_logits"]
         return result
 
     @torch.inference_mode()
@@ -329,14 +331,16 @@ class SemanticNerf(nn.Module):
         return features[:, 0], features[:, 1 : 1 + g], sem
 
     def render_semantics(
-        self, origins: Tensor, dirs: Tensor, samples: RaySamples
-    ) -> tuple[Tensor, Tensor | None]:
+        self, origins: Tensor, dirs: Tensor, samples: RaySamples, per_sample: bool = False
+    ) -> tuple[Tensor, Tensor | None] | tuple[Tensor, Tensor | None, Tensor, Tensor]:
         """What the semantic loss of ``config.loss.semantic_form`` reads, (R, C), with
         gradients for the semantic head only (the density, hence the weights, computed
         without): one semantic training step's forward pass. ``paper``: the class
         distributions; ``semantic_nerf``: the composited logits. Also each ray's opacity
         over its samples (R,), without gradient, where the surface term reads it
-        (``loss.semantic_surface_faint_only``), else None."""
+        (``loss.semantic_surface_faint_only``), else None. With ``per_sample`` also each
+        sample's logits (S, C) and its rendering weight (S,), detached (what
+        ``loss.semantic_band_consistency`` reads)."""
         ri = samples.ray_indices
         pts = origins[ri] + dirs[ri] * samples.t_mids[:, None]
         sigma, logits = self.field.semantics(self.box.to_unit(pts))
@@ -347,7 +351,10 @@ class SemanticNerf(nn.Module):
         opacity = None
         if self.config.loss.semantic_surface_faint_only:
             opacity = accumulate_along_rays(weights.detach(), None, samples)[:, 0]
-        return (probs if composited is None else composited), opacity
+        scores = probs if composited is None else composited
+        if per_sample:
+            return scores, opacity, logits, weights.detach()
+        return scores, opacity
 
     def render_rays(
         self,
@@ -424,6 +431,7 @@ class SemanticNerf(nn.Module):
                 )
                 if semantics and dd is not None:
                     self._label_empty_rays(o, d, dd, part)
+                    self._mix_surface_labels(o, d, dd, part)
                 parts.append(part)
         if not parts:
             return {}
@@ -438,12 +446,18 @@ class SemanticNerf(nn.Module):
         samples pass close to the neighbouring surface and vote for its class; the surface
         the sensor measured is at the band's centre."""
         s = self.config.sampler
-        if depth is None or s.render_band_label_sigma <= 0:
+        behind = s.render_band_label_behind
+        if depth is None or (s.render_band_label_sigma <= 0 and behind is None):
             return None
         d = depth[samples.ray_indices]
-        sigma = s.render_band_label_sigma * s.band_half_width(d)
-        z = (samples.t_mids - d) / sigma
-        return torch.where(d > 0, torch.exp(-0.5 * z * z), torch.ones_like(z))
+        focus = torch.ones_like(samples.t_mids)
+        if s.render_band_label_sigma > 0:
+            sigma = s.render_band_label_sigma * s.band_half_width(d)
+            z = (samples.t_mids - d) / sigma
+            focus = torch.exp(-0.5 * z * z)
+        if behind is not None:
+            focus = focus * (samples.t_mids <= d + behind)
+        return torch.where(d > 0, focus, torch.ones_like(focus))
 
     def surface_logits(self, origins: Tensor, dirs: Tensor, depth: Tensor) -> Tensor:
         """The semantic head's logits (R, C) at the surface points ``origins + dirs * depth``
@@ -464,11 +478,30 @@ class SemanticNerf(nn.Module):
         pixel wide, carved by the free space beside it); its own distribution, normalised from
         no weight, was all zeros (``paper``) or uniform (``semantic_nerf``) and read as the
         first class, wall (benchmarks/results/fusion.md "Thin furniture: empty bands")."""
-        empty = torch.nonzero((depth > 0) & (out["opacity"] < EMPTY_RAY_OPACITY)).squeeze(-1)
+        # No class distribution at all: no weight anywhere, or none where the labels read
+        # (``render_band_label_behind``).
+        faint = (out["opacity"] < EMPTY_RAY_OPACITY) | (out["semantics"].sum(dim=-1) <= 0)
+        empty = torch.nonzero((depth > 0) & faint).squeeze(-1)
         if empty.numel() == 0:
             return
         logits = self.surface_logits(origins[empty], dirs[empty], depth[empty])
         out["semantics"][empty] = torch.softmax(logits, dim=-1).to(out["semantics"].dtype)
+
+    def _mix_surface_labels(
+        self, origins: Tensor, dirs: Tensor, depth: Tensor, out: dict[str, Tensor]
+    ) -> None:
+        """Mix the semantic head's class distribution at the measured surface point of rays with
+        ``depth`` into ``out["semantics"]`` (in place), with weight
+        ``SamplerConfig.render_surface_label_weight``; rays without a measurement keep theirs."""
+        w = self.config.sampler.render_surface_label_weight
+        if w <= 0:
+            return
+        rows = torch.nonzero(depth > 0).squeeze(-1)
+        if rows.numel() == 0:
+            return
+        surface = torch.softmax(self.surface_logits(origins[rows], dirs[rows], depth[rows]), dim=-1)
+        sem = out["semantics"]
+        sem[rows] = ((1 - w) * sem[rows] + w * surface).to(sem.dtype)
 
     @torch.inference_mode()
     def _render_band_color(
@@ -546,6 +579,16 @@ class SemanticNerf(nn.Module):
             out["free_space"] = free_space_scale * free_space_loss(
                 out["weights"], in_front, samples, target.get("ray_weight")
             )
+        if self.config.loss.semantic_band_consistency > 0 and "sample_logits" in out:
+            if "labels" in target:
+                out = dict(out)
+                out["band_consistency"] = band_consistency_loss(
+                    out["sample_logits"],
+                    out["weights"].detach(),
+                    samples,
+                    target["labels"],
+                    target.get("semantic_weight", target.get("ray_weight")),
+                )
         return total_loss(out, target, self.config.loss)
 
     @torch.no_grad()

@@ -20,7 +20,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from csa_core.nerf.losses import semantic_cross_entropy, semantic_loss
+from csa_core.nerf.losses import band_consistency_loss, semantic_cross_entropy, semantic_loss
 from csa_core.nerf.model import SemanticNerf
 from csa_core.nerf.rays import RayBank
 
@@ -272,7 +272,10 @@ class NerfTrainer:
                     stratified=True,
                     generator=gen,
                 )
-            scores, opacity = nerf.render_semantics(origins, dirs, samples)
+            consistency = nerf.config.loss.semantic_band_consistency
+            scores, opacity, *per_sample = nerf.render_semantics(
+                origins, dirs, samples, per_sample=consistency > 0
+            )
             weight = self.semantic_weights(ids, ray_weight)
             form_loss = (
                 semantic_cross_entropy
@@ -285,6 +288,10 @@ class NerfTrainer:
             if surface > 0:
                 loss = loss + surface * self._surface_term(
                     ids, origins, dirs, labels, weight, opacity
+                )
+            if consistency > 0:
+                loss = loss + consistency * band_consistency_loss(
+                    *per_sample, samples, labels, weight
                 )
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -53,6 +53,8 @@ EXPECTED: dict[str, tuple[str, dict[str, Any]]] = {
             "optim.steps": 300,
             "observed_resolution": 0,
             "render_unseen_unknown": False,
+            "sampler.render_band_label_behind": None,
+            "sampler.render_surface_label_weight": 0.0,
         },
     ),
     "tiny": (
@@ -72,6 +74,8 @@ EXPECTED: dict[str, tuple[str, dict[str, Any]]] = {
             "sampler.occupancy_resolution": 32,
             "observed_resolution": 0,
             "render_unseen_unknown": False,
+            "sampler.render_band_label_behind": None,
+            "sampler.render_surface_label_weight": 0.0,
         },
     ),
 }

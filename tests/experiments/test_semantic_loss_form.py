@@ -11,7 +11,12 @@ import torch
 
 from csa_core.nerf.config import FieldConfig, HashEncodingConfig, LossConfig
 from csa_core.nerf.field import SemanticField
-from csa_core.nerf.losses import semantic_cross_entropy, semantic_loss, total_loss
+from csa_core.nerf.losses import (
+    band_consistency_loss,
+    semantic_cross_entropy,
+    semantic_loss,
+    total_loss,
+)
 from csa_core.nerf.rendering import RaySamples, class_distribution, render_weights
 
 
@@ -162,3 +167,88 @@ def test_an_unknown_form_names_the_field():
 
     with pytest.raises((CSAInputError, ValueError), match="semantic_form"):
         apply_overrides(preset("tiny"), ["nerf.preset_overrides=('loss.semantic_form=softmax',)"])
+
+
+def _ce(logits: torch.Tensor, channel: int) -> float:
+    return float(torch.nn.functional.cross_entropy(logits[None], torch.tensor([channel])))
+
+
+def test_the_band_consistency_term_asks_every_weighted_sample_for_the_label_by_hand():
+    """``loss.semantic_band_consistency``: per ray, the samples' own cross-entropies averaged
+    with their weights normalised over the ray; the mean over labelled rays, importance
+    weights as in the composited terms."""
+    samples, weights, logits = two_rays()
+    labels = torch.tensor([7, 1])
+    ray0 = (0.5 * _ce(logits[0], 6) + 0.25 * _ce(logits[1], 6)) / 0.75
+    ray1 = (0.1 * _ce(logits[2], 0) + 0.8 * _ce(logits[3], 0)) / 0.9
+    value = band_consistency_loss(logits, weights, samples, labels)
+    assert float(value) == pytest.approx((ray0 + ray1) / 2, rel=1e-6)
+    weighted = band_consistency_loss(logits, weights, samples, labels, torch.tensor([3.0, 1.0]))
+    assert float(weighted) == pytest.approx((3 * ray0 + ray1) / 4, rel=1e-6)
+    # Unknown labels and rays without weight have no term.
+    assert float(band_consistency_loss(logits, weights, samples, torch.tensor([0, 1]))) == (
+        pytest.approx(ray1, rel=1e-6)
+    )
+    empty = torch.tensor([0.0, 0.0, 0.1, 0.8])
+    assert float(band_consistency_loss(logits, empty, samples, labels)) == pytest.approx(
+        ray1, rel=1e-6
+    )
+
+
+def test_the_band_consistency_term_sees_a_label_left_to_one_sample_of_the_ray():
+    """A ray whose front sample says one class and whose back sample another can render the
+    label the view gave under the composited terms: the consistency term charges the sample
+    that disagrees, and its gradient reaches each sample's logits in proportion to its weight."""
+    samples = RaySamples(
+        torch.tensor([0, 0]), torch.tensor([0.0, 1.0]), torch.tensor([1.0, 2.0]), 1, per_ray=2
+    )
+    weights = torch.tensor([0.2, 0.8])
+    logits = torch.zeros(2, 40)
+    logits[0, 21] = 8.0  # front: id 22 (ceiling)
+    logits[1, 18] = 8.0  # behind: id 19 (mirror)
+    logits.requires_grad_(True)
+    label = torch.tensor([19])
+    _, composited = class_distribution(weights, logits, samples, "semantic_nerf")
+    assert float(semantic_cross_entropy(composited, label)) < 0.1  # the view's label rendered
+    value = band_consistency_loss(logits, weights, samples, label)
+    front_ce, back_ce = _ce(logits[0].detach(), 18), _ce(logits[1].detach(), 18)
+    assert float(value) == pytest.approx(0.2 * front_ce + 0.8 * back_ce, rel=1e-5)
+    assert 0.2 * front_ce > 100 * 0.8 * back_ce
+    value.backward()
+    front, back = logits.grad[0], logits.grad[1]
+    assert front[18] < -0.19  # the disagreeing sample is pulled towards the label
+    assert back.abs().max() < 0.02  # the agreeing one is nearly there
+
+
+def test_the_fit_and_the_semantic_steps_add_the_band_consistency_term_when_asked(workspace):
+    """With ``loss.semantic_band_consistency`` a fit step's terms hold it, weighed by the
+    semantic weight times the option, and the semantic-head steps run with it; off, no
+    term and no per-sample logits are kept."""
+    from csa_core.adapt.config import preset
+    from csa_core.adapt.pseudo_labels import nerf_config
+    from csa_core.data.scene_io import read_scene
+    from csa_core.nerf.fit import fit_semantic_nerf
+    from csa_core.nerf.rays import RayBank
+    from csa_core.nerf.trainer import NerfTrainer
+
+    scene = read_scene(workspace.scenes[0])
+    for weight in (0.0, 2.0):
+        cfg = nerf_config(preset("tiny").nerf)
+        cfg.loss.semantic_form = "semantic_nerf"
+        cfg.loss.semantic_band_consistency = weight
+        nerf, _ = fit_semantic_nerf(scene, "label-nyu40", cfg, steps=10, progress=False)
+        bank = RayBank(scene.frames, scene.intrinsics, label_folder="label-nyu40")
+        trainer = NerfTrainer(nerf, bank, 5, seed=0)
+        terms = trainer.step()
+        if weight == 0:
+            assert "band_consistency" not in terms
+            continue
+        consistency = float(terms["band_consistency"])
+        assert consistency > 0
+        rest = sum(
+            cfg.loss.__dict__[k] * float(terms[k]) for k in ("color", "depth", "semantic")
+        ) + cfg.loss.free_space * float(terms.get("free_space", 0.0))
+        assert float(terms["loss"]) == pytest.approx(
+            rest + cfg.loss.semantic * weight * consistency, rel=1e-5
+        )
+        assert math.isfinite(trainer.semantic_steps(3, rays_per_step=64))

@@ -27,6 +27,10 @@ def tiny_config(steps: int = 40) -> NerfConfig:
     # Labels everywhere: unseen surfaces left unknown have tests of their own
     # (tests/nerf/test_holes_and_unseen.py).
     cfg.render_unseen_unknown, cfg.observed_resolution = False, 0
+    # Labels from the whole band: the preset's cut behind the measured depth and its share
+    # of the surface point's labels have tests of their own
+    # (tests/nerf/test_holes_and_unseen.py).
+    cfg.sampler.render_band_label_behind, cfg.sampler.render_surface_label_weight = None, 0.0
     cfg.sampler.occupancy_resolution = 32
     cfg.sampler.march_steps = 192
     cfg.sampler.uniform_samples = cfg.sampler.importance_samples = 32

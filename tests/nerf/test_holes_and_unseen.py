@@ -581,3 +581,80 @@ def test_band_label_focus_changes_labels_only(tiny_nerf, tiny_scene, form):
 
     assert agree(focused) > 0.97, agree(focused)
     assert agree(focused) > agree(plain)
+
+
+@pytest.mark.parametrize("form", ["paper", "semantic_nerf"])
+def test_surface_label_weight_mixes_the_surface_points_distribution_into_the_bands(
+    tiny_nerf, tiny_scene, form
+):
+    """``render_surface_label_weight`` w: rays with a measured depth render (1 - w) x the
+    band's class distribution + w x the semantic head's at their measured surface point;
+    colour, depth, opacity and rays without a measurement stay as they were."""
+    nerf = copy.deepcopy(tiny_nerf)
+    nerf.config.loss.semantic_form = form
+    f = tiny_scene.train_frames[0]
+    origins, dirs = image_rays(tiny_scene.intrinsics, f.pose)
+    depth = torch.as_tensor(_with_holes(f.depth).reshape(-1))
+    measured = depth > 0
+    assert measured.any() and (~measured).any()
+    plain = nerf.render_rays(origins, dirs, depth=depth)
+    with torch.no_grad():
+        surface = torch.softmax(nerf.surface_logits(origins, dirs, depth), dim=-1)
+    for w in (0.25, 1.0):
+        nerf.config.sampler.render_surface_label_weight = w
+        mixed = nerf.render_rays(origins, dirs, depth=depth)
+        for key in ("rgb", "depth", "opacity"):
+            assert torch.equal(plain[key], mixed[key]), key
+        expected = (1 - w) * plain["semantics"][measured] + w * surface[measured]
+        torch.testing.assert_close(mixed["semantics"][measured], expected)
+        torch.testing.assert_close(mixed["semantics"][~measured], plain["semantics"][~measured])
+    with pytest.raises(ValueError, match="render_surface_label_weight"):
+        SamplerConfig(render_surface_label_weight=1.5)
+
+
+def test_band_labels_behind_the_measured_depth_are_cut_at_the_given_distance(tiny_nerf):
+    """``render_band_label_behind``: factor 1 up to that many metres behind the measured
+    depth and 0 beyond; rays without a measurement keep every sample; with the Gaussian as
+    well, the two factors multiply."""
+    nerf = copy.deepcopy(tiny_nerf)
+    s = nerf.config.sampler
+    depth = torch.tensor([2.0, 0.0])
+    t = torch.tensor([1.9, 2.0, 2.04, 2.06, 1.9, 2.0, 2.04, 2.06])
+    samples = RaySamples(torch.arange(2).repeat_interleave(4), t - 1e-3, t + 1e-3, 2)
+    s.render_band_label_behind = 0.05
+    focus = nerf._label_focus(samples, depth).reshape(2, 4)
+    assert focus[0].tolist() == [1.0, 1.0, 1.0, 0.0]
+    assert focus[1].tolist() == [1.0, 1.0, 1.0, 1.0]
+    s.render_band_label_sigma = 0.25
+    both = nerf._label_focus(samples, depth).reshape(2, 4)
+    assert both[0, 3] == 0 and 0 < both[0, 0] < 1 and both[0, 1] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="render_band_label_behind"):
+        SamplerConfig(render_band_label_behind=-0.01)
+
+
+def test_rays_whose_labels_read_no_sample_take_the_label_at_their_measured_surface(
+    tiny_nerf, tiny_scene
+):
+    """A band whose weight lies wholly behind the cut (``render_band_label_behind``) has no
+    class distribution left though it is opaque: such a ray takes the semantic head's class
+    distribution at its measured surface point, as a ray without any weight does, never an
+    all-zero one (wall); rays with a distribution, or without a measurement, keep theirs."""
+    nerf = copy.deepcopy(tiny_nerf)
+    f = tiny_scene.train_frames[0]
+    origins, dirs = image_rays(tiny_scene.intrinsics, f.pose)
+    depth = torch.as_tensor(f.depth.reshape(-1))[:6].clone()
+    origins, dirs = origins[:6], dirs[:6]
+    depth[:4] = depth[:4].clamp_min(0.5)
+    depth[4:] = torch.tensor([0.0, 1.0])
+    semantics = torch.zeros(6, 40)
+    semantics[1, 3] = semantics[3, 7] = 1.0  # rays 1 and 3 read a distribution
+    out = {"opacity": torch.tensor([0.9, 0.9, 0.9, 0.9, 0.9, 0.9]), "semantics": semantics}
+    out["semantics"][5, 5] = 1.0
+    before = out["semantics"].clone()
+    nerf._label_empty_rays(origins, dirs, depth, out)
+    with torch.no_grad():
+        surface = torch.softmax(nerf.surface_logits(origins, dirs, depth), dim=-1)
+    for ray in (0, 2):  # opaque, measured, no distribution: the surface point's
+        torch.testing.assert_close(out["semantics"][ray], surface[ray])
+    for ray in (1, 3, 4, 5):  # a distribution of their own, or no measurement
+        assert torch.equal(out["semantics"][ray], before[ray])
