@@ -75,7 +75,7 @@ class SceneInfo:
 
 
 # Below this opacity a rendered ray holds no surface worth a label: labels come from the
-# semantic head at its measured surface point (``SemanticNerf._label_empty_rays``).
+# semantic head at its measured surface point (``SemanticNerf._surface_labels``).
 EMPTY_RAY_OPACITY = 1e-6
 
 
@@ -430,8 +430,7 @@ class SemanticNerf(nn.Module):
                     label_focus=focus,
                 )
                 if semantics and dd is not None:
-                    self._label_empty_rays(o, d, dd, part)
-                    self._mix_surface_labels(o, d, dd, part)
+                    self._surface_labels(o, d, dd, part)
                 parts.append(part)
         if not parts:
             return {}
@@ -462,46 +461,39 @@ class SemanticNerf(nn.Module):
     def surface_logits(self, origins: Tensor, dirs: Tensor, depth: Tensor) -> Tensor:
         """The semantic head's logits (R, C) at the surface points ``origins + dirs * depth``
         of rays (R, 3) with measured ``depth`` (R,): where the voxel map votes, read by the
-        semantic-head steps' surface term and by the labels of rays without weight; only the
-        semantic head sees gradients."""
+        semantic-head steps' surface term and by the labels of rays with depth
+        (:meth:`_surface_labels`); only the semantic head sees gradients."""
         points = origins + dirs * depth[:, None]
         _, logits = self.field.semantics(self.box.to_unit(points))
         return logits
 
-    def _label_empty_rays(
+    def _surface_labels(
         self, origins: Tensor, dirs: Tensor, depth: Tensor, out: dict[str, Tensor]
     ) -> None:
-        """Give rays with a measured ``depth`` whose samples hold (next to) no rendering weight
+        """Labels from the semantic head at the measured surface point of rays with ``depth``
+        (in place in ``out["semantics"]``), its distribution computed once for both uses.
+
+        Give rays with a measured ``depth`` whose samples hold (next to) no rendering weight
         the semantic head's class distribution at their measured surface point, where the
         fit's surface term trained it (``LossConfig.semantic_surface``), in ``out["semantics"]``
         (in place). Such a ray met a part thinner than the field resolves (a chair spindle one
         pixel wide, carved by the free space beside it); its own distribution, normalised from
         no weight, was all zeros (``paper``) or uniform (``semantic_nerf``) and read as the
-        first class, wall (benchmarks/results/fusion.md "Thin furniture: empty bands")."""
+        first class, wall (benchmarks/results/fusion.md "Thin furniture: empty bands").
+        With ``SamplerConfig.render_surface_label_weight`` w, every other ray with a measurement
+        takes (1 - w) x its own distribution + w x the surface point's."""
         # No class distribution at all: no weight anywhere, or none where the labels read
         # (``render_band_label_behind``).
         faint = (out["opacity"] < EMPTY_RAY_OPACITY) | (out["semantics"].sum(dim=-1) <= 0)
-        empty = torch.nonzero((depth > 0) & faint).squeeze(-1)
-        if empty.numel() == 0:
-            return
-        logits = self.surface_logits(origins[empty], dirs[empty], depth[empty])
-        out["semantics"][empty] = torch.softmax(logits, dim=-1).to(out["semantics"].dtype)
-
-    def _mix_surface_labels(
-        self, origins: Tensor, dirs: Tensor, depth: Tensor, out: dict[str, Tensor]
-    ) -> None:
-        """Mix the semantic head's class distribution at the measured surface point of rays with
-        ``depth`` into ``out["semantics"]`` (in place), with weight
-        ``SamplerConfig.render_surface_label_weight``; rays without a measurement keep theirs."""
         w = self.config.sampler.render_surface_label_weight
-        if w <= 0:
-            return
-        rows = torch.nonzero(depth > 0).squeeze(-1)
+        rows = torch.nonzero((depth > 0) & (faint | (w > 0))).squeeze(-1)
         if rows.numel() == 0:
             return
         surface = torch.softmax(self.surface_logits(origins[rows], dirs[rows], depth[rows]), dim=-1)
         sem = out["semantics"]
-        sem[rows] = ((1 - w) * sem[rows] + w * surface).to(sem.dtype)
+        empty = faint[rows]
+        mixed = torch.where(empty[:, None], surface, (1 - w) * sem[rows] + w * surface)
+        sem[rows] = mixed.to(sem.dtype)
 
     @torch.inference_mode()
     def _render_band_color(

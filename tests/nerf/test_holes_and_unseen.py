@@ -651,7 +651,7 @@ def test_rays_whose_labels_read_no_sample_take_the_label_at_their_measured_surfa
     out = {"opacity": torch.tensor([0.9, 0.9, 0.9, 0.9, 0.9, 0.9]), "semantics": semantics}
     out["semantics"][5, 5] = 1.0
     before = out["semantics"].clone()
-    nerf._label_empty_rays(origins, dirs, depth, out)
+    nerf._surface_labels(origins, dirs, depth, out)
     with torch.no_grad():
         surface = torch.softmax(nerf.surface_logits(origins, dirs, depth), dim=-1)
     for ray in (0, 2):  # opaque, measured, no distribution: the surface point's

@@ -548,20 +548,14 @@ def _cli(capsys, *args: str) -> tuple[int, str, str]:
     return code, out.out, out.err
 
 
+def _create_device_key(capsys, where: list[str], name: str, *options: str):
+    """``csa keys create --scope device --name NAME [OPTIONS]`` against ``where``."""
+    return _cli(capsys, "keys", *where, "create", "--scope", "device", "--name", name, *options)
+
+
 def test_csa_keys_commands(keyed: Keyed, capsys) -> None:
     where = _database_options(keyed)
-    code, out, err = _cli(
-        capsys,
-        "keys",
-        *where,
-        "create",
-        "--scope",
-        "device",
-        "--name",
-        "robot-7",
-        "--expires",
-        "30d",
-    )
+    code, out, err = _create_device_key(capsys, where, "robot-7", "--expires", "30d")
     assert code == 0 and "store it now" in err
     key = out.strip()
     assert key.startswith("csa_") and "\n" not in key
@@ -577,20 +571,9 @@ def test_csa_keys_commands(keyed: Keyed, capsys) -> None:
         assert r.status_code == 401 and "revoked" in r.json()["error"]["message"]
     code, out, _ = _cli(capsys, "keys", *where, "list", "--active")
     assert code == 0 and "robot-7" not in out
-    code, _, err = _cli(capsys, "keys", *where, "create", "--scope", "device", "--name", "robot-7")
+    code, _, err = _create_device_key(capsys, where, "robot-7")
     assert code == 1 and "robot-7" in err and "exists" in err
-    code, _, err = _cli(
-        capsys,
-        "keys",
-        *where,
-        "create",
-        "--scope",
-        "device",
-        "--name",
-        "robot-8",
-        "--expires",
-        "3x",
-    )
+    code, _, err = _create_device_key(capsys, where, "robot-8", "--expires", "3x")
     assert code == 1 and "not a duration" in err
     code, _, err = _cli(capsys, "keys", *where, "revoke", "nobody")
     assert code == 1 and "not found" in err
@@ -606,21 +589,10 @@ def test_csa_keys_create_names_its_options_in_errors(keyed: Keyed, capsys) -> No
         ("0d", "'0d' is not a duration"),
         ("999999w", "'999999w' is more than 36500 days"),
     ):
-        code, out, err = _cli(
-            capsys,
-            "keys",
-            *where,
-            "create",
-            "--scope",
-            "device",
-            "--name",
-            "robot-10",
-            "--expires",
-            expires,
-        )
+        code, out, err = _create_device_key(capsys, where, "robot-10", "--expires", expires)
         assert code == 1 and out == ""
         assert f"csa keys create: --expires: {problem}" in err and "expires_in" not in err
-    code, _, err = _cli(capsys, "keys", *where, "create", "--scope", "device", "--name", "9 lives")
+    code, _, err = _create_device_key(capsys, where, "9 lives")
     assert code == 1 and "csa keys create: --name: '9 lives' is not a key name" in err
     with keyed.http(API_KEY) as admin:
         assert "robot-10" not in {k["name"] for k in admin.get("/api/v1/keys").json()}
