@@ -22,7 +22,7 @@ from csa_core.data.camera import Intrinsics, check_pose, intrinsics_from_matrix
 from csa_core.errors import CSAInputError
 from server.db.models import MAX_ID
 from server.errors import APIError, invalid
-from server.image_headers import image_format, image_size, jpeg_problem
+from server.image_headers import UploadHeaderError, check_upload_header, image_format
 
 FRAME_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 ASPECT_TOLERANCE = 0.01  # depth and labels may be stored at another resolution of the same camera
@@ -85,24 +85,14 @@ def check_frame_name(name: str, field: str = "name") -> str:
 def _decode_checked(
     data: bytes, field: str, max_pixels: int, tmp: Path, reader, png_only: bool = False, **kw
 ) -> np.ndarray:
-    if not data:
-        raise invalid(field, "empty file")
-    fmt = image_format(data)
-    if fmt is None:
-        raise invalid(field, "cannot decode image (not a PNG or JPEG file)")
-    if png_only and fmt != ".png":
+    if png_only and image_format(data) == ".jpg":
         # Depth and labels are kept and served as PNG files; JPEG's lossy compression would
         # change their values (label ids blur into their neighbours' at every edge).
         raise invalid(field, "must be a PNG file, not a JPEG (lossy compression changes values)")
-    size = image_size(data)
-    if size is None:
-        raise invalid(field, "cannot decode image (unreadable header)")
-    if size[0] < 1 or size[1] < 1 or size[0] * size[1] > max_pixels:
-        raise invalid(
-            field, f"image is {size[0]}x{size[1]}, more than the limit of {max_pixels} pixels"
-        )
-    if (problem := jpeg_problem(data)) is not None:
-        raise invalid(field, problem)
+    try:
+        fmt, size = check_upload_header(data, field, max_pixels)
+    except UploadHeaderError as e:
+        raise invalid(e.where, e.problem) from None
     path = tmp / f"{field.replace('/', '_')}{fmt}"
     path.write_bytes(data)
     try:

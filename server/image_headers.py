@@ -4,6 +4,7 @@ Decoding a tiny PNG that claims 100000 x 100000 pixels would allocate tens of gi
 reading the header first lets the upload be refused instead. Likewise a small progressive
 JPEG of thousands of scans takes the decoder minutes (it goes over the whole image once per
 scan): :func:`jpeg_problem` counts the scans by walking the file's markers first.
+:func:`check_upload_header` makes every one of these checks of an uploaded image.
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from __future__ import annotations
 import re
 import struct
 from typing import NamedTuple
+
+from csa_core.errors import CSAInputError
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8"
@@ -147,3 +150,39 @@ def image_size(data: bytes) -> tuple[int, int] | None:
     if fmt == ".jpg":
         return _jpeg_size(data)
     return None
+
+
+class UploadHeaderError(CSAInputError):
+    """An uploaded image refused from its first bytes: ``where`` is the field or file,
+    ``problem`` what is wrong with it."""
+
+
+class UploadHeader(NamedTuple):
+    """What the header of an accepted upload declares: ``".png"`` or ``".jpg"``, and
+    (width, height)."""
+
+    fmt: str
+    size: tuple[int, int]
+
+
+def check_upload_header(data: bytes, field: str, max_pixels: int) -> UploadHeader:
+    """Format and size of the uploaded image ``data`` from its header, before anything is
+    decoded; raises :class:`UploadHeaderError` naming ``field`` where the file is empty, not a
+    PNG or JPEG, has a header that cannot be read, is not 1 to ``max_pixels`` pixels, or is a
+    JPEG the decoder must not see (:func:`jpeg_problem`; a walk of the whole file)."""
+    if not data:
+        raise UploadHeaderError(field, "empty file")
+    fmt = image_format(data)
+    if fmt is None:
+        raise UploadHeaderError(field, "not a PNG or JPEG file")
+    size = image_size(data)
+    if size is None:
+        raise UploadHeaderError(field, f"unreadable {'PNG' if fmt == '.png' else 'JPEG'} header")
+    w, h = size
+    if w < 1 or h < 1:
+        raise UploadHeaderError(field, f"{w} x {h} pixels is an empty image")
+    if w * h > max_pixels:
+        raise UploadHeaderError(field, f"{w} x {h} pixels exceeds the limit of {max_pixels} pixels")
+    if (problem := jpeg_problem(data)) is not None:
+        raise UploadHeaderError(field, problem)
+    return UploadHeader(fmt, size)

@@ -20,7 +20,7 @@ from server import capabilities
 from server.auth import DeviceScope
 from server.deps import DbDep, FormPartsChecked, ServicesDep, read_in_thread
 from server.errors import invalid, not_available, too_large
-from server.image_headers import image_format, image_size, jpeg_problem
+from server.image_headers import UploadHeaderError, check_upload_header
 from server.schemas.common import ERROR_RESPONSES
 from server.services import models
 
@@ -69,19 +69,14 @@ async def predict(
         raise too_large("image", limit)
     checkpoint = await read_in_thread(db, models.checkpoint_of, model)
     sha, name, version_id = checkpoint.sha256, checkpoint.model_name, checkpoint.model_id
-    fmt, size = image_format(data), image_size(data)
-    if fmt is None or size is None:
-        raise invalid("image", "cannot decode image (not a PNG or JPEG file)")
     max_pixels = services.settings.max_image_pixels
-    if size[0] * size[1] > max_pixels or min(size) < 1:
-        raise invalid(
-            "image", f"image is {size[0]}x{size[1]}, more than the limit of {max_pixels} pixels"
-        )
     model_cache = request.app.state.model_cache
 
     def label() -> bytes:
-        if (problem := jpeg_problem(data)) is not None:  # a walk of the whole file: off the loop
-            raise invalid("image", problem)
+        try:  # the JPEG check walks the whole file: off the event loop
+            fmt = check_upload_header(data, "image", max_pixels).fmt
+        except UploadHeaderError as e:
+            raise invalid(e.where, e.problem) from None
         with tempfile.TemporaryDirectory(prefix="csa-predict-") as d:
             path = Path(d) / f"image{fmt}"
             path.write_bytes(data)

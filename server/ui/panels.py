@@ -30,7 +30,7 @@ from server import capabilities
 from server.artifacts import ArtifactStore
 from server.db.models import Frame, Scene
 from server.errors import invalid, not_available, not_found
-from server.image_headers import image_format, image_size, jpeg_problem
+from server.image_headers import UploadHeaderError, check_upload_header
 from server.model_cache import ModelCache
 from server.nerf_cache import NerfCache
 from server.services.models import checkpoint_of
@@ -213,15 +213,10 @@ def predict_preview(
     checkpoint = checkpoint_of(db, None)
     sha, name, model_id = checkpoint.sha256, checkpoint.model_name, checkpoint.model_id
     db.close()
-    size = image_size(data) if image_format(data) is not None else None
-    if size is None:
-        raise invalid("image", "cannot decode image (not a PNG or JPEG file)")
-    if size[0] * size[1] > max_pixels or min(size) < 1:
-        raise invalid(
-            "image", f"image is {size[0]}x{size[1]}, more than the limit of {max_pixels} pixels"
-        )
-    if (problem := jpeg_problem(data)) is not None:
-        raise invalid("image", problem)
+    try:
+        check_upload_header(data, "image", max_pixels)
+    except UploadHeaderError as e:
+        raise invalid(e.where, e.problem) from None
     decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if decoded is None:
         raise invalid("image", "cannot decode image (corrupt PNG or JPEG file)")

@@ -1,6 +1,7 @@
 """The walk of a JPEG's markers that counts its scans before anything is decoded
 (``server/image_headers.py``): files written by OpenCV (baseline, progressive, with restart
-markers), truncated files, and synthetic files of too many scans or segments. No server."""
+markers), truncated files, and synthetic files of too many scans or segments; and the checks
+of an upload's header that every image upload makes. No server."""
 
 from __future__ import annotations
 
@@ -11,6 +12,9 @@ import pytest
 from server.image_headers import (
     MAX_JPEG_SCANS,
     MAX_JPEG_SEGMENTS,
+    UploadHeader,
+    UploadHeaderError,
+    check_upload_header,
     image_size,
     jpeg_markers,
     jpeg_problem,
@@ -125,3 +129,56 @@ def test_more_than_the_most_segments_is_refused() -> None:
 def test_png_files_are_not_walked() -> None:
     ok, buf = cv2.imencode(".png", picture())
     assert ok and jpeg_problem(buf.tobytes()) is None
+
+
+def png_file(width: int = W, height: int = H) -> bytes:
+    """A PNG of ``picture()`` whose header declares ``width`` x ``height`` pixels."""
+    ok, buf = cv2.imencode(".png", picture())
+    assert ok
+    data = buf.tobytes()
+    return data[:16] + width.to_bytes(4, "big") + height.to_bytes(4, "big") + data[24:]
+
+
+def test_png_and_jpeg_uploads_pass_the_header_checks() -> None:
+    for data, fmt in ((png_file(), ".png"), (encoded(), ".jpg"), (progressive(), ".jpg")):
+        assert check_upload_header(data, "color", W * H) == UploadHeader(fmt, (W, H))
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        (b"", "color: empty file"),
+        (b"GIF89a" + bytes(40), "color: not a PNG or JPEG file"),
+        (png_file()[:20], "color: unreadable PNG header"),
+        (b"\xff\xd8\xff\xe0\x00\x02\xff\xd9", "color: unreadable JPEG header"),
+        (png_file(0, H), f"color: 0 x {H} pixels is an empty image"),
+        (png_file(W, 0), f"color: {W} x 0 pixels is an empty image"),
+        (
+            png_file(W + 1, H),
+            f"color: {W + 1} x {H} pixels exceeds the limit of {W * H} pixels",
+        ),
+        (
+            png_file(100_000, 100_000),
+            f"color: 100000 x 100000 pixels exceeds the limit of {W * H} pixels",
+        ),
+    ],
+    ids=["empty", "gif", "png-header", "jpeg-header", "no-width", "no-height", "one-over", "huge"],
+)
+def test_uploads_failing_a_header_check_are_refused_naming_the_field(
+    data: bytes, message: str
+) -> None:
+    with pytest.raises(UploadHeaderError) as e:
+        check_upload_header(data, "color", W * H)
+    assert str(e.value) == message and e.value.where == "color"
+
+
+def test_jpeg_uploads_of_too_many_scans_or_segments_are_refused_naming_the_field() -> None:
+    data = progressive()
+    scan_bomb = with_extra_scans(data, MAX_JPEG_SCANS)
+    padded = data[:2] + b"\xff\xfe\x00\x02" * (MAX_JPEG_SEGMENTS + 1) + data[2:]
+    for bad in (scan_bomb, padded):
+        with pytest.raises(UploadHeaderError) as e:
+            check_upload_header(bad, "archive:color/0.jpg", W * H)
+        assert e.value.where == "archive:color/0.jpg"
+        assert str(e.value) == f"archive:color/0.jpg: {jpeg_problem(bad)}"
+    assert "more than" in str(e.value) and "marker segments" in str(e.value)

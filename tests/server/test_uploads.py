@@ -72,8 +72,8 @@ def test_upload_is_idempotent_and_conflicts_are_refused(client: CSAClient, scene
 @pytest.mark.parametrize(
     ("field", "kwargs", "message"),
     [
-        ("color", {"color": b"definitely not an image"}, "cannot decode"),
-        ("color", {"color": b"\x89PNG\r\n\x1a\n" + b"\x00" * 40}, "cannot decode"),
+        ("color", {"color": b"definitely not an image"}, "color: not a PNG or JPEG file"),
+        ("color", {"color": b"\x89PNG\r\n\x1a\n" + b"\x00" * 40}, "color: unreadable PNG header"),
         ("depth", {"depth": depth_png(20, 20)}, "size mismatch"),
         ("depth", {"depth": png(np.full((H, W), 9, np.uint8))}, "uint16"),
         ("depth", {"depth": png(np.zeros((H, W, 3), np.uint16))}, "single-channel"),
