@@ -221,6 +221,12 @@ class LossConfig:
     free_space_warmup: float = (
         0.2  # fraction of the steps before the free-space loss starts (ramped in over as many)
     )
+    # Ours (1 = off): the free-space term's weight on rays whose pixel borders a nearer
+    # surface, a measured depth in its 3x3 neighbourhood more than the band's half-width in
+    # front of its own. Those rays pass just beside an edge of that surface, so the term
+    # carves the side of whatever stands in front of the wall they measured: the thin parts
+    # of furniture (a lamp's pole, a chair's spindles) most of all.
+    free_space_edge: float = 1.0
     # Ours (0 = paper): each ray's semantic loss weighs (d / z)^p, z its measured depth (at
     # least 0.3 m; rays without depth weigh 1) and d the training views' median measured
     # depth: views that see a surface from close by get more say in its fused label. In no
@@ -244,6 +250,8 @@ class LossConfig:
     semantic_band_consistency: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0 <= self.free_space_edge <= 1:
+            raise ValueError(f"loss.free_space_edge must be in [0, 1], got {self.free_space_edge}")
         if not isinstance(self.semantic_surface_faint_only, bool):
             raise ValueError(
                 "loss.semantic_surface_faint_only must be true or false, "

@@ -103,7 +103,8 @@ def free_space_loss(
     weights: Tensor, in_front: Tensor, samples: RaySamples, ray_weight: Tensor | None = None
 ) -> Tensor:
     """Mean over rays of the rendering weight that falls on samples ``in_front`` (S,) of the
-    measured surface: carves the free space that depth-guided sampling visits only sparsely."""
+    measured surface: carves the free space that depth-guided sampling visits only sparsely.
+    ``in_front`` may be fractional: a per-sample weight of the term."""
     w = accumulate_along_rays(weights * in_front, None, samples).squeeze(-1)
     return _mean(w, ray_weight)
 

@@ -561,12 +561,16 @@ class SemanticNerf(nn.Module):
         free_space_scale: float = 1.0,
     ) -> dict[str, Tensor]:
         """The fit's loss terms and their weighted sum ``loss`` (``losses.total_loss``), with
-        the free-space term on depth-banded samples scaled by ``free_space_scale`` (its warm-up)."""
+        the free-space term on depth-banded samples scaled by ``free_space_scale`` (its warm-up)
+        and weighed per ray by ``target["free_space_weight"]`` when given
+        (``loss.free_space_edge``)."""
         s = self.config.sampler
         if self.config.loss.free_space > 0 and free_space_scale > 0 and "depth" in target:
             d = target["depth"][samples.ray_indices]
             half = s.band_half_width(d)
             in_front = ((d > 0) & (samples.t_ends < d - half)).float()
+            if "free_space_weight" in target:
+                in_front = in_front * target["free_space_weight"][samples.ray_indices]
             out = dict(out)
             out["free_space"] = free_space_scale * free_space_loss(
                 out["weights"], in_front, samples, target.get("ray_weight")

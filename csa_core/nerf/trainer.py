@@ -156,6 +156,11 @@ class NerfTrainer:
         semantic_weight = self.semantic_weights(ids, ray_weight)
         if semantic_weight is not None:
             target["semantic_weight"] = semantic_weight
+        edge = nerf.config.loss.free_space_edge
+        if edge < 1 and nerf.config.loss.free_space > 0 and self.rays.has_depth:
+            s = nerf.config.sampler
+            beside = self.rays.beside_nearer_surface(s.depth_band, s.depth_band_fraction)[ids]
+            target["free_space_weight"] = torch.where(beside, edge, 1.0)
         self.sampler.update_every_n_steps(self.steps_done, nerf.density_fn, gen)
         samples = nerf.sample(
             origins, dirs, self.sampler, depth=target["depth"], stratified=True, generator=gen

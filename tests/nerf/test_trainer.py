@@ -9,6 +9,8 @@ import pytest
 import torch
 
 from csa_core.adapt.nerf_training import NerfLabelTrainer
+from csa_core.data.scene import Frame
+from csa_core.nerf.config import LossConfig
 from csa_core.nerf.fit import fit_semantic_nerf
 from csa_core.nerf.rays import RayBank, image_rays
 from csa_core.nerf.samplers import DepthGuidedSampler, OccupancySampler, ReferenceSampler
@@ -42,6 +44,80 @@ def test_ray_bank_rays_are_the_image_rays_of_their_frame(scene):
         assert float(target["depth"][k]) == pytest.approx(float(f.depth.reshape(-1)[i % hw]))
     with pytest.raises(KeyError, match=scene.train_frames[0].name):
         bank.set_labels({})
+
+
+def test_ray_bank_marks_the_pixels_beside_a_nearer_surface(scene):
+    """A pole 1 m in front of a wall 3 m away: the wall's pixels next to the pole (and only
+    they) border a nearer surface; the pole's own pixels, pixels without depth and a hole next
+    to the pole do not count."""
+    intr = scene.intrinsics
+    h, w = intr.height, intr.width
+    depth = np.full((h, w), 3.0, np.float32)
+    depth[:, 10] = 2.0  # the pole
+    depth[5, 3] = 0.0  # a hole in the wall, far from the pole
+    depth[7, 11] = 0.0  # a hole beside the pole
+    f = scene.train_frames[0]
+    frames = [
+        Frame("0", f.color, f.pose, depth),
+        Frame("1", f.color, f.pose, np.full_like(depth, 3)),
+    ]
+    bank = RayBank(frames, intr)
+    beside = bank.beside_nearer_surface(0.1, 0.0).view(2, h, w).numpy()
+    expected = np.zeros((h, w), bool)
+    expected[:, [9, 11]] = True
+    expected[7, 11] = False
+    assert (beside[0] == expected).all() and not beside[1].any()
+    # A band wider than the pole's 1 m lead: nothing is beside a nearer surface.
+    assert not bank.beside_nearer_surface(1.5, 0.0).any()
+    assert not bank.beside_nearer_surface(0.1, 0.5).any()  # 0.1 + 0.5 * 3 m
+
+
+def test_free_space_edge_weighs_the_term_on_rays_beside_a_nearer_surface(scene):
+    """``loss.free_space_edge`` scales the free-space term of the rays beside a nearer surface
+    and of no other ray: 0 leaves them out, 1 is the plain term."""
+    nerf = fit_semantic_nerf(scene, "label-nyu40", tiny_config(steps=20), progress=False)[0]
+    bank = RayBank(scene.train_frames, scene.intrinsics)
+    s = nerf.config.sampler
+    beside = bank.beside_nearer_surface(s.depth_band, s.depth_band_fraction)
+    assert beside.any() and not beside.all()
+    ids = torch.cat([torch.nonzero(beside)[:64, 0], torch.nonzero(~beside)[:64, 0]])
+    origins, dirs, target = bank.batch(ids)
+    samples = nerf.sample(origins, dirs, nerf.train_sampler(has_depth=True), depth=target["depth"])
+    out = nerf.render_samples(origins, dirs, samples, semantics=False)
+
+    def free_space(edge_weight: float | None) -> float:
+        t = dict(target)
+        if edge_weight is not None:
+            t["free_space_weight"] = torch.where(beside[ids], edge_weight, 1.0)
+        return float(nerf.losses(out, t, samples)["free_space"].detach())
+
+    plain, none_beside, half = free_space(None), free_space(0.0), free_space(0.5)
+    only_beside = free_space(None) - free_space(0.0)
+    assert plain > 0 and only_beside > 0  # the field puts weight in front beside edges
+    assert half == pytest.approx(plain - 0.5 * only_beside, rel=1e-5)
+    assert none_beside < plain
+    with pytest.raises(ValueError, match="loss.free_space_edge"):
+        LossConfig(free_space_edge=1.5)
+
+
+def test_trainer_passes_the_edge_weight_only_when_it_is_below_one(scene):
+    cfg = tiny_config(steps=2)
+    cfg.loss.free_space_edge = 0.0
+    nerf = fit_semantic_nerf(scene, "label-nyu40", cfg, progress=False)[0]
+    bank = RayBank(scene.train_frames, scene.intrinsics)
+    trainer = NerfTrainer(nerf, bank, schedule_steps=2)
+    seen: list[dict] = []
+    original = nerf.losses
+    nerf.losses = lambda out, target, samples, scale=1.0: (  # type: ignore[method-assign]
+        seen.append(target) or original(out, target, samples, scale)
+    )
+    trainer.train(1)
+    assert "free_space_weight" in seen[-1]
+    w = seen[-1]["free_space_weight"]
+    assert set(w.unique().tolist()) <= {0.0, 1.0}
+    nerf.config.loss.free_space_edge = 1.0
+    trainer.train(1)
+    assert "free_space_weight" not in seen[-1]
 
 
 def test_the_model_owns_its_parameter_groups_and_the_optimiser_uses_them(nerf, scene):
