@@ -7,7 +7,7 @@ metric z-depth and rendered depth needs no conversion.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -80,7 +80,6 @@ class RayBank:
         self.has_depth = bool((self.depth > 0).any())
         self._median_depth: float | None = None
         self._width = intr.width
-        self._beside_nearer: tuple[tuple[float, float], Tensor] | None = None
         self.frame_rows = frame_rows
         self.labels: Tensor | None = None
         self._balanced: tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None = None
@@ -159,27 +158,21 @@ class RayBank:
             self._median_depth = float(self.depth[self.depth > 0].median())
         return near_view_weight(self.depth[ids], power, self._median_depth)
 
-    def beside_nearer_surface(self, band: float, band_fraction: float) -> Tensor:
+    def beside_nearer_surface(self, half_width: Callable[[Tensor], Tensor]) -> Tensor:
         """Whether each pixel (bool, flat like the bank) has a measured depth in its 3x3
-        neighbourhood more than ``band + band_fraction * depth`` in front of its own measured
-        depth: its ray passes just beside an edge of a nearer surface. Pixels without depth,
-        and neighbours without depth, never count. Cached per band."""
-        key = (float(band), float(band_fraction))
-        cached = self._beside_nearer
-        if cached is not None and cached[0] == key:
-            return cached[1]
-        n_frames = len(self.frames)
+        neighbourhood more than ``half_width(depth)`` in front of its own measured depth
+        (``SamplerConfig.band_half_width``): its ray passes just beside an edge of a nearer
+        surface. Pixels without depth, and neighbours without depth, never count."""
         h, w = self.hw // self._width, self._width
         out = torch.zeros(self.count, dtype=torch.bool, device=self.device)
         per_chunk = max(1, 2**22 // self.hw)  # frames per chunk: a few MB of temporaries
-        for start in range(0, n_frames, per_chunk):
-            stop = min(start + per_chunk, n_frames)
+        for start in range(0, len(self.frames), per_chunk):
+            stop = min(start + per_chunk, len(self.frames))
             depth = self.depth[start * self.hw : stop * self.hw].view(stop - start, 1, h, w)
             far = torch.where(depth > 0, depth, torch.full_like(depth, float("inf")))
             nearest = -F.max_pool2d(-far, kernel_size=3, stride=1, padding=1)
-            edge = (depth > 0) & (depth - nearest > band + band_fraction * depth)
+            edge = (depth > 0) & (depth - nearest > half_width(depth))
             out[start * self.hw : stop * self.hw] = edge.reshape(-1)
-        self._beside_nearer = (key, out)
         return out
 
     def surface_points(self, chunk: int = 2**18) -> Iterator[Tensor]:

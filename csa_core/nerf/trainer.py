@@ -110,6 +110,8 @@ class NerfTrainer:
             raise ValueError(f"loss.semantic_depth_power must be finite and >= 0, got {power}")
         self.near_power = power
         self._view_order: list[int] = []
+        # The bank's pixels beside a nearer surface (``loss.free_space_edge``), on first use.
+        self._beside_nearer: Tensor | None = None
         self.steps_done = 0
         self.samples_seen = 0
 
@@ -158,9 +160,10 @@ class NerfTrainer:
             target["semantic_weight"] = semantic_weight
         edge = nerf.config.loss.free_space_edge
         if edge < 1 and nerf.config.loss.free_space > 0 and self.rays.has_depth:
-            s = nerf.config.sampler
-            beside = self.rays.beside_nearer_surface(s.depth_band, s.depth_band_fraction)[ids]
-            target["free_space_weight"] = torch.where(beside, edge, 1.0)
+            if self._beside_nearer is None:
+                band = nerf.config.sampler.band_half_width
+                self._beside_nearer = self.rays.beside_nearer_surface(band)
+            target["free_space_weight"] = torch.where(self._beside_nearer[ids], edge, 1.0)
         self.sampler.update_every_n_steps(self.steps_done, nerf.density_fn, gen)
         samples = nerf.sample(
             origins, dirs, self.sampler, depth=target["depth"], stratified=True, generator=gen

@@ -62,14 +62,14 @@ def test_ray_bank_marks_the_pixels_beside_a_nearer_surface(scene):
         Frame("1", f.color, f.pose, np.full_like(depth, 3)),
     ]
     bank = RayBank(frames, intr)
-    beside = bank.beside_nearer_surface(0.1, 0.0).view(2, h, w).numpy()
+    beside = bank.beside_nearer_surface(lambda d: torch.full_like(d, 0.1)).view(2, h, w).numpy()
     expected = np.zeros((h, w), bool)
     expected[:, [9, 11]] = True
     expected[7, 11] = False
     assert (beside[0] == expected).all() and not beside[1].any()
     # A band wider than the pole's 1 m lead: nothing is beside a nearer surface.
-    assert not bank.beside_nearer_surface(1.5, 0.0).any()
-    assert not bank.beside_nearer_surface(0.1, 0.5).any()  # 0.1 + 0.5 * 3 m
+    assert not bank.beside_nearer_surface(lambda d: torch.full_like(d, 1.5)).any()
+    assert not bank.beside_nearer_surface(lambda d: 0.1 + 0.5 * d).any()  # 0.1 + 0.5 * 3 m
 
 
 def test_free_space_edge_weighs_the_term_on_rays_beside_a_nearer_surface(scene):
@@ -77,8 +77,7 @@ def test_free_space_edge_weighs_the_term_on_rays_beside_a_nearer_surface(scene):
     and of no other ray: 0 leaves them out, 1 is the plain term."""
     nerf = fit_semantic_nerf(scene, "label-nyu40", tiny_config(steps=20), progress=False)[0]
     bank = RayBank(scene.train_frames, scene.intrinsics)
-    s = nerf.config.sampler
-    beside = bank.beside_nearer_surface(s.depth_band, s.depth_band_fraction)
+    beside = bank.beside_nearer_surface(nerf.config.sampler.band_half_width)
     assert beside.any() and not beside.all()
     ids = torch.cat([torch.nonzero(beside)[:64, 0], torch.nonzero(~beside)[:64, 0]])
     origins, dirs, target = bank.batch(ids)
@@ -92,7 +91,7 @@ def test_free_space_edge_weighs_the_term_on_rays_beside_a_nearer_surface(scene):
         return float(nerf.losses(out, t, samples)["free_space"].detach())
 
     plain, none_beside, half = free_space(None), free_space(0.0), free_space(0.5)
-    only_beside = free_space(None) - free_space(0.0)
+    only_beside = plain - none_beside
     assert plain > 0 and only_beside > 0  # the field puts weight in front beside edges
     assert half == pytest.approx(plain - 0.5 * only_beside, rel=1e-5)
     assert none_beside < plain
