@@ -229,8 +229,10 @@ class LossConfig:
     free_space_edge: float = 1.0
     # Ours (0 = paper): each ray's semantic loss weighs (d / z)^p, z its measured depth (at
     # least 0.3 m; rays without depth weigh 1) and d the training views' median measured
-    # depth: views that see a surface from close by get more say in its fused label. In no
-    # preset: its measured effect is in docs/deviations.md, the row on near views' labels.
+    # depth: with p > 0 views that see a surface from close by get more say in its fused
+    # label; with p < 0 far views do (p = -2 weighs each ray by the area its pixel covers, so
+    # a view's say in a surface's label no longer grows with how close it stands). In no
+    # preset: its measured effect is in docs/deviations.md, the row on the views' depth.
     semantic_depth_power: float = 0.0
     # Ours (0 = paper): in the semantic-head steps, this weight times the NLL of each ray's
     # label under the semantic head evaluated at the ray's measured surface point, beside the

@@ -106,8 +106,8 @@ class NerfTrainer:
             fit_balanced if semantic is None else semantic == "class_balanced"
         )
         power = nerf.config.loss.semantic_depth_power
-        if not (math.isfinite(power) and power >= 0):
-            raise ValueError(f"loss.semantic_depth_power must be finite and >= 0, got {power}")
+        if not math.isfinite(power):
+            raise ValueError(f"loss.semantic_depth_power must be finite, got {power}")
         self.near_power = power
         self._view_order: list[int] = []
         # The bank's pixels beside a nearer surface (``loss.free_space_edge``), on first use.

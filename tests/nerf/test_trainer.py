@@ -605,7 +605,16 @@ def test_near_view_weights_weigh_the_semantic_term_of_close_rays_only(scene, mon
     monkeypatch.setattr("csa_core.nerf.trainer.semantic_loss", spy_semantic)
     trainer.semantic_steps(2, rays_per_step=32)
     assert len(weights) == 2 and all(w is not None and w.shape == (32,) for w in weights)
-    nerf.config.loss.semantic_depth_power = -1.0
+    # A negative power weighs far rays up: p = -2 gives each ray the area its pixel covers.
+    torch.testing.assert_close(
+        near_view_weight(depth, -2.0, 1.0), torch.tensor([1.0, 0.09, 1.0, 4.0])
+    )
+    nerf.config.loss.semantic_depth_power = -2.0
+    far = NerfTrainer(nerf, bank, schedule_steps=1)
+    near = bank.near_weights(ids, 2.0)
+    torch.testing.assert_close(bank.near_weights(ids, -2.0), 1 / near)
+    assert far.near_power == -2.0
+    nerf.config.loss.semantic_depth_power = float("nan")
     with pytest.raises(ValueError, match="semantic_depth_power"):
         NerfTrainer(nerf, bank, schedule_steps=1)
 
