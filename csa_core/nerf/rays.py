@@ -149,9 +149,9 @@ class RayBank:
         return pix + frame * self.hw
 
     def near_weights(self, ids: Tensor, power: float) -> Tensor | None:
-        """Semantic-loss weights of pixels ``ids`` favouring near views
-        (``losses.near_view_weight`` relative to the bank's median measured depth), or None
-        when ``power`` is 0 or the bank has no depth."""
+        """Semantic-loss weights of pixels ``ids`` by their depth, near views favoured when
+        ``power`` > 0 and far ones when it is < 0 (``losses.near_view_weight`` relative to the
+        bank's median measured depth), or None when ``power`` is 0 or the bank has no depth."""
         if power == 0 or not self.has_depth:
             return None
         if self._median_depth is None:

@@ -141,7 +141,7 @@ class NerfTrainer:
 
     def semantic_weights(self, ids: Tensor, ray_weight: Tensor | None) -> Tensor | None:
         """Weights of the semantic loss of pixels ``ids``: their draw's ``ray_weight`` times,
-        with ``loss.semantic_depth_power``, the near-view weights (``RayBank.near_weights``);
+        with ``loss.semantic_depth_power``, the depth weights (``RayBank.near_weights``);
         ``ray_weight`` itself otherwise."""
         near = self.rays.near_weights(ids, self.near_power)
         if near is None:
@@ -242,7 +242,7 @@ class NerfTrainer:
         holes in the depth included) but as many in the band as the fit's (``band_samples``),
         rays drawn uniformly from every view or label-stratified with their weights as in
         :meth:`step` (``optim.semantic_ray_batches``, by default as ``optim.ray_batches``:
-        stratified when it is "class_balanced"), and weighted towards near views
+        stratified when it is "class_balanced"), and weighted by their depth
         with ``loss.semantic_depth_power``; with ``loss.semantic_surface`` the loss adds the
         surface term (:meth:`_surface_term`); ``on_step(i)`` hears every step (what it raises
         ends the steps); returns the last loss."""

@@ -545,7 +545,7 @@ def test_the_cpu_preset_fits_and_joint_trains_its_nerf_at_a_fixed_rate(scene):
     assert [g["lr"] for g in joint.trainer.optimizer.param_groups] == pytest.approx([optim.lr] * 2)
 
 
-def test_near_view_weights_weigh_the_semantic_term_of_close_rays_only(scene, monkeypatch):
+def test_depth_weights_weigh_the_semantic_term_only(scene, monkeypatch):
     """``loss.semantic_depth_power``: a ray's semantic loss weighs (median depth / z)^p (z
     clamped at 0.3 m, rays without depth weigh 1); colour and depth stay unweighted, and both
     the fit's steps and the semantic-head steps use the weights."""
